@@ -1,0 +1,63 @@
+"""The ``trmd`` Typer app: global options and command registration.
+
+Each command lives in its own small module under ``trmd_cli.cli`` exposing ``register(app)``;
+modules import heavy libraries (torch) inside the command body so ``trmd --help`` is instant.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Annotated, Optional
+
+import typer
+
+from .. import __version__
+from .boundary import state
+
+app = typer.Typer(
+    name="trmd",
+    help="Deblur event-camera frames: a blurry frame + the events of its exposure → 2N+1 sharp "
+    "frames (TRMD or EDI).",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+)
+
+#: command modules, in the order `trmd --help` lists them
+COMMANDS = ("deblur", "hfr", "info", "voxelize", "convert", "simulate", "train", "eval")
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"trmd {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Show tracebacks.")] = False,
+    version: Annotated[
+        Optional[bool],
+        typer.Option("--version", callback=_version, is_eager=True, help="Print the version."),
+    ] = None,
+) -> None:
+    state["verbose"] = verbose
+
+
+for _name in COMMANDS:
+    try:
+        _module = importlib.import_module(f"{__package__}.{_name}")
+    except ModuleNotFoundError as _e:  # a command not built yet
+        if _e.name != f"{__package__}.{_name}":
+            raise
+        continue
+    _module.register(app)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

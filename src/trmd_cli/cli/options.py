@@ -1,0 +1,78 @@
+"""Options shared by several commands (Annotated types) and their parsers."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from ..errors import InputError
+from ..read.base import ReadOptions
+
+__all__ = [
+    "N", "Exposure", "Sensor", "TimeUnit", "Columns", "OneBased", "Overwrite", "Device",
+    "Threads", "read_options", "parse_sensor", "parse_duration_us",
+]
+
+N = Annotated[int, typer.Option("--n", min=1, max=16,
+                                help="Latent frames 2N+1 per exposure (N=3 → 7 frames).")]
+Exposure = Annotated[
+    Optional[tuple[float, float]],
+    typer.Option("--exposure", help="Exposure window T0 T1 in the file's time unit "
+                 "(after --time-unit): overrides frames or windows stored in the file."),
+]
+Sensor = Annotated[Optional[str], typer.Option("--sensor", help="Sensor size WxH, e.g. 346x260, "
+                                               "for files that store none.")]
+TimeUnit = Annotated[Optional[str], typer.Option(
+    "--time-unit", help="Unit of the file's times: s, ms, us or ns (default: integers are µs, "
+    "floats are seconds).")]
+Columns = Annotated[Optional[str], typer.Option(
+    "--columns", help="Text column order, e.g. t,y,x,p (default t,x,y,p).")]
+OneBased = Annotated[bool, typer.Option("--one-based", help="Coordinates count from 1.")]
+Overwrite = Annotated[bool, typer.Option("--overwrite", help="Replace an existing output.")]
+Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")]
+Threads = Annotated[Optional[int], typer.Option("--threads", min=1,
+                                                help="CPU threads for torch (default: all).")]
+
+_UNIT_US = {"s": 1e6, "ms": 1e3, "us": 1.0, "µs": 1.0, "ns": 1e-3}
+
+
+def parse_sensor(text: str | None) -> tuple[int, int] | None:
+    """``"346x260"`` → (346, 260)."""
+    if text is None:
+        return None
+    m = re.fullmatch(r"\s*(\d+)\s*[xX×,]\s*(\d+)\s*", text)
+    if not m or int(m[1]) == 0 or int(m[2]) == 0:
+        raise InputError(f"--sensor {text!r} is not WxH", hint="write it like 346x260")
+    return int(m[1]), int(m[2])
+
+
+def parse_duration_us(text: str) -> int:
+    """``"-40ms"``, ``"1.5s"``, ``"250us"`` → integer µs. A bare number is µs."""
+    m = re.fullmatch(r"\s*([-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)\s*(s|ms|us|µs|ns)?\s*", text)
+    if not m:
+        raise InputError(f"{text!r} is not a duration", hint="write it like -40ms, 1.5s or 250us")
+    return int(round(float(m[1]) * _UNIT_US[m[2] or "us"]))
+
+
+def read_options(columns: str | None = None, one_based: bool = False,
+                 time_unit: str | None = None, sensor: str | None = None) -> ReadOptions:
+    cols = None
+    if columns:
+        cols = tuple(c.strip().lower() for c in columns.split(","))
+        if sorted(c for c in cols if c != "_") != ["p", "t", "x", "y"]:
+            raise InputError(f"--columns {columns!r} must name t, x, y and p once each "
+                             "(use _ to skip a column)", hint="e.g. --columns t,y,x,p")
+    if time_unit is not None and time_unit not in _UNIT_US:
+        raise InputError(f"--time-unit {time_unit!r} is not one of s, ms, us, ns")
+    return ReadOptions(columns=cols, one_based=one_based,
+                       time_unit=None if time_unit is None else time_unit.replace("µs", "us"),
+                       sensor=parse_sensor(sensor))
+
+
+def existing(path: Path) -> Path:
+    if not path.exists():
+        raise InputError("file not found", path=path, hint="check the path")
+    return path

@@ -1,0 +1,200 @@
+"""The one typed form of an event stream, and of an exposure window.
+
+Units are fixed here for the whole library: time in integer microseconds (int64), coordinates as
+uint16 column ``x`` / row ``y`` (row 0 = top), polarity int8 ±1. Readers convert on the way in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["EventStream", "Exposure", "EVENT_DTYPE", "US_PER_S"]
+
+US_PER_S = 1_000_000
+
+#: Structured dtype used when events travel as one array (npz/npy structured files, writers).
+EVENT_DTYPE = np.dtype([("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "i1")])
+
+
+@dataclass(frozen=True)
+class Exposure:
+    """An exposure window ``[start_us, end_us]`` in integer microseconds."""
+
+    start_us: int
+    end_us: int
+
+    def __post_init__(self) -> None:
+        if not self.end_us > self.start_us:
+            raise InputError(
+                f"exposure window [{self.start_us}, {self.end_us}] µs is empty or reversed",
+                hint="give --exposure T0 T1 with T1 > T0",
+            )
+
+    @property
+    def duration_us(self) -> int:
+        return self.end_us - self.start_us
+
+    @property
+    def mid_us(self) -> float:
+        return 0.5 * (self.start_us + self.end_us)
+
+    def instants_us(self, n: int) -> np.ndarray:
+        """The 2N+1 latent-frame instants t0 + k·T/(2N), k = 0..2N, as float64 µs."""
+        return self.start_us + np.arange(2 * n + 1) * (self.duration_us / (2 * n))
+
+    def shifted(self, offset_us: int) -> "Exposure":
+        return Exposure(self.start_us + offset_us, self.end_us + offset_us)
+
+
+@dataclass(frozen=True, eq=False)
+class EventStream:
+    """Events sorted by time.
+
+    Attributes:
+        x: (E,) uint16 column, 0..width-1.
+        y: (E,) uint16 row, 0..height-1 (0 = top).
+        t: (E,) int64 microseconds, non-decreasing.
+        p: (E,) int8, +1 (ON) or -1 (OFF).
+        width, height: sensor size in pixels.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    t: np.ndarray
+    p: np.ndarray
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        n = len(self.t)
+        for name in ("x", "y", "p"):
+            if len(getattr(self, name)) != n:
+                raise InputError(f"event arrays differ in length: t has {n}, {name} has "
+                                 f"{len(getattr(self, name))}")
+        if self.width <= 0 or self.height <= 0:
+            raise InputError(f"sensor size {self.width}x{self.height} is not positive",
+                             hint="pass --sensor WxH")
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def sensor_size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return (self.width, self.height)
+
+    @property
+    def time_range_us(self) -> tuple[int, int]:
+        if len(self.t) == 0:
+            return (0, 0)
+        return int(self.t[0]), int(self.t[-1])
+
+    def slice(self, start_us: float, end_us: float) -> "EventStream":
+        """Events with ``start_us <= t < end_us`` as views (binary search, no copy)."""
+        i0, i1 = np.searchsorted(self.t, [start_us, end_us], side="left")
+        return self.take(slice(int(i0), int(i1)))
+
+    def take(self, index) -> "EventStream":
+        return EventStream(self.x[index], self.y[index], self.t[index], self.p[index],
+                           self.width, self.height)
+
+    @classmethod
+    def empty(cls, width: int, height: int) -> "EventStream":
+        return cls(np.zeros(0, np.uint16), np.zeros(0, np.uint16), np.zeros(0, np.int64),
+                   np.zeros(0, np.int8), width, height)
+
+    @classmethod
+    def concatenate(cls, parts: list["EventStream"]) -> "EventStream":
+        if not parts:
+            raise InputError("no event streams to concatenate")
+        w, h = parts[0].width, parts[0].height
+        return cls(*(np.concatenate([getattr(s, k) for s in parts]) for k in "xytp"), w, h)
+
+    def to_structured(self) -> np.ndarray:
+        out = np.empty(len(self), EVENT_DTYPE)
+        out["t"], out["x"], out["y"], out["p"] = self.t, self.x, self.y, self.p
+        return out
+
+
+def make_stream(
+    x,
+    y,
+    t_us,
+    p,
+    width: int | None = None,
+    height: int | None = None,
+    *,
+    source: str | None = None,
+    sort: bool = False,
+) -> EventStream:
+    """Validate raw columns and build an :class:`EventStream` (never mutates the inputs).
+
+    ``t_us`` must already be in microseconds (float is rounded). ``p`` may be {0,1}, {-1,1} or
+    bool; 0 means OFF. When ``width``/``height`` are None they are taken as max+1 (the caller
+    warns). Unsorted times raise unless ``sort`` is true.
+
+    Raises:
+        InputError: NaN/infinite/negative times, unsorted times, coordinates outside the sensor,
+            polarities other than {0, 1, -1}.
+    """
+    t = np.asarray(t_us)
+    x = np.asarray(x)
+    y = np.asarray(y)
+    p = np.asarray(p)
+    if t.dtype.kind == "f":
+        if len(t) and not np.isfinite(t).all():
+            bad = int(np.flatnonzero(~np.isfinite(t))[0])
+            raise InputError(f"event {bad} has a non-finite time ({t[bad]})", path=source,
+                             hint="remove or repair the broken rows")
+        t = np.rint(t).astype(np.int64)
+    elif t.dtype.kind in "iu":
+        t = t.astype(np.int64, copy=False)
+    else:
+        raise InputError(f"event times have type {t.dtype}, expected numbers", path=source)
+    if len(t) and t.min() < 0:
+        bad = int(np.argmin(t))
+        raise InputError(f"event {bad} has a negative time ({t[bad]} µs)", path=source,
+                         hint="times must count from the start of the recording; check --time-unit")
+    if len(t) > 1 and (np.diff(t) < 0).any():
+        if not sort:
+            bad = int(np.flatnonzero(np.diff(t) < 0)[0]) + 1
+            raise InputError(f"event times are not sorted (event {bad} goes back in time)",
+                             path=source, hint="sort the events by time first")
+        order = np.argsort(t, kind="stable")
+        t, x, y, p = t[order], x[order], y[order], p[order]
+    for name, arr in (("x", x), ("y", y)):
+        if arr.dtype.kind == "f":
+            if len(arr) and (not np.isfinite(arr).all() or (arr != np.round(arr)).any()):
+                raise InputError(f"{name} coordinates are not whole numbers", path=source)
+        elif arr.dtype.kind not in "iub":
+            raise InputError(f"{name} coordinates have type {arr.dtype}", path=source)
+        if len(arr) and arr.min() < 0:
+            raise InputError(f"{name} coordinate {int(arr.min())} is negative", path=source,
+                             hint="if the file counts pixels from 1, pass --one-based")
+    if width is None:
+        width = int(x.max()) + 1 if len(x) else 1
+    if height is None:
+        height = int(y.max()) + 1 if len(y) else 1
+    if len(x) and int(x.max()) >= width:
+        raise InputError(f"x coordinate {int(x.max())} is outside the sensor width {width}",
+                         path=source, hint="check --sensor WxH or the column order (--columns)")
+    if len(y) and int(y.max()) >= height:
+        raise InputError(f"y coordinate {int(y.max())} is outside the sensor height {height}",
+                         path=source, hint="check --sensor WxH or the column order (--columns)")
+    if width > 65535 or height > 65535:
+        raise InputError(f"sensor size {width}x{height} is too large", path=source)
+    if p.dtype == bool:
+        p8 = np.where(p, 1, -1).astype(np.int8)
+    else:
+        if len(p) and p.dtype.kind == "f" and not np.isfinite(p).all():
+            raise InputError("polarity has non-finite values", path=source)
+        pi = p.astype(np.int64, copy=False)
+        if len(pi) and not np.isin(np.unique(pi), (-1, 0, 1)).all():
+            raise InputError(f"polarity values {np.unique(pi)[:5].tolist()} are not in {{0, 1, -1}}",
+                             path=source, hint="check the column order (--columns)")
+        p8 = np.where(pi > 0, 1, -1).astype(np.int8)
+    return EventStream(x.astype(np.uint16), y.astype(np.uint16), t, p8, int(width), int(height))

@@ -1,0 +1,54 @@
+"""Readers: event files (and the frames some of them hold) → :class:`Recording`.
+
+``open_events(path)`` sniffs the format and dispatches; each format lives in its own module and
+is imported only when used, so optional dependencies (aedat, evt3, scipy …) stay optional.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+from .base import Frame, MemoryRecording, ReadOptions, Recording
+from .frames import read_image
+from .sniff import FORMATS, detect_format
+
+__all__ = ["open_events", "detect_format", "read_image", "Recording", "MemoryRecording",
+           "Frame", "ReadOptions", "FORMATS", "READERS"]
+
+#: format → "module:function" taking (path, ReadOptions) and returning a Recording
+READERS = {
+    "text": "text:read_text",
+    "npz": "npz:read_npz",
+    "npy": "npz:read_npy",
+    "hdf5": "hdf5:read_hdf5",
+    "aedat4": "aedat4:read_aedat4",
+    "evt3": "prophesee:read_evt3",
+    "evt2": "prophesee:read_evt2",
+    "dat": "prophesee:read_dat",
+    "mat": "mat:read_mat",
+}
+
+
+def open_events(path: str | Path, options: ReadOptions | None = None) -> Recording:
+    """Open an event file of any supported format.
+
+    Raises:
+        InputError / FormatError: with the file named and a hint how to fix it.
+    """
+    path = Path(path)
+    fmt = detect_format(path)
+    module, func = READERS[fmt].split(":")
+    reader = getattr(importlib.import_module(f"{__package__}.{module}"), func)
+    return reader(path, options or ReadOptions())
+
+
+def require(module: str, extra: str = "formats", path: str | Path | None = None):
+    """Import an optional dependency or raise a FormatError telling how to install it."""
+    from ..errors import FormatError
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise FormatError(f"reading this format needs the '{module}' package", path=path,
+                          hint=f"pip install 'trmd[{extra}]'") from None

@@ -1,0 +1,134 @@
+"""What every reader returns: a :class:`Recording` — sensor size, events by time window, and
+(optionally) frames with exposure windows. Readers never transform; transforms never open files.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..events import EventStream, Exposure
+
+__all__ = ["Frame", "Recording", "MemoryRecording", "ReadOptions"]
+
+
+@dataclass(frozen=True)
+class ReadOptions:
+    """How to interpret a file whose format leaves things open.
+
+    Attributes:
+        columns: order of the text columns, e.g. ``("t", "y", "x", "p")``; None = ``t x y p``.
+        one_based: coordinates in the file count from 1.
+        time_unit: ``"s" | "ms" | "us" | "ns"`` overriding the format's own rule (None = default:
+            integer = µs, float = seconds).
+        sensor: (width, height) for files that store no size.
+    """
+
+    columns: tuple[str, ...] | None = None
+    one_based: bool = False
+    time_unit: str | None = None
+    sensor: tuple[int, int] | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One intensity frame.
+
+    Attributes:
+        image: float32 in [0, 1], (H, W) gray or (H, W, 3) RGB; linear as stored.
+        exposure: the exposure window in µs on the events' clock, or None if unknown.
+        index: frame number (from the file name or position).
+        name: where it came from, for messages and output folder names.
+    """
+
+    image: np.ndarray
+    exposure: Exposure | None
+    index: int
+    name: str
+
+
+class Recording(ABC):
+    """An opened event file. Subclasses that can, read windows lazily (bounded memory)."""
+
+    path: Path
+    format: str
+    width: int
+    height: int
+    #: warnings collected while opening (size guessed, etc.), printed by the CLI
+    warnings: list[str]
+
+    @abstractmethod
+    def events(self, start_us: float | None = None, end_us: float | None = None) -> EventStream:
+        """Events with ``start_us <= t < end_us`` (None = open end)."""
+
+    @abstractmethod
+    def num_events(self) -> int: ...
+
+    @abstractmethod
+    def time_range_us(self) -> tuple[int, int]:
+        """(first, last) event time in µs; (0, 0) when there are no events."""
+
+    def frames(self) -> Iterator[Frame]:
+        """Frames stored in the file, in time order (none by default)."""
+        return iter(())
+
+    def frame_exposures(self) -> list[Exposure]:
+        """Exposure windows of the stored frames (cheap: no pixel data)."""
+        return [f.exposure for f in self.frames() if f.exposure is not None]
+
+    def stored_windows(self) -> list[Exposure]:
+        """Exposure windows stored without frames (npz ``exposure_start``/``exposure_end``)."""
+        return []
+
+    def sensor_size(self) -> tuple[int, int]:
+        return (self.width, self.height)
+
+    def close(self) -> None:  # pragma: no cover - trivial
+        pass
+
+    def __enter__(self) -> "Recording":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@dataclass(eq=False)
+class MemoryRecording(Recording):
+    """A recording whose events are held in memory (text, npz, mat, small files)."""
+
+    stream: EventStream
+    path: Path
+    format: str
+    frame_list: Sequence[Frame] = ()
+    windows: Sequence[Exposure] = ()
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def width(self) -> int:  # type: ignore[override]
+        return self.stream.width
+
+    @property
+    def height(self) -> int:  # type: ignore[override]
+        return self.stream.height
+
+    def events(self, start_us=None, end_us=None) -> EventStream:
+        lo = -np.inf if start_us is None else start_us
+        hi = np.inf if end_us is None else end_us
+        return self.stream.slice(lo, hi)
+
+    def num_events(self) -> int:
+        return len(self.stream)
+
+    def time_range_us(self) -> tuple[int, int]:
+        return self.stream.time_range_us
+
+    def frames(self) -> Iterator[Frame]:
+        return iter(self.frame_list)
+
+    def stored_windows(self) -> list[Exposure]:
+        return list(self.windows)

@@ -1,0 +1,59 @@
+"""Intensity frames: images on disk → float32 [0, 1]."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError, InputError
+
+__all__ = ["read_image", "IMAGE_EXTENSIONS"]
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read an 8/16-bit gray or colour image as float32 in [0, 1].
+
+    Returns:
+        (H, W) for gray, (H, W, 3) RGB for colour (alpha dropped). Gray stored as 3 equal
+        channels comes back as (H, W).
+    Raises:
+        InputError: missing file. FormatError: not a readable image.
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("image not found", path=path, hint="check the path")
+    data = np.fromfile(path, np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if img is None:
+        raise FormatError("not a readable image (truncated or corrupt?)", path=path,
+                          hint="use PNG, JPG or TIFF")
+    if img.dtype == np.uint8:
+        out = img.astype(np.float32) / 255.0
+    elif img.dtype == np.uint16:
+        out = img.astype(np.float32) / 65535.0
+    elif img.dtype.kind == "f":
+        out = np.clip(img.astype(np.float32), 0, 1)
+    else:
+        raise FormatError(f"unsupported pixel type {img.dtype}", path=path)
+    if out.ndim == 3:
+        if out.shape[2] == 4:
+            out = out[..., :3]
+        if out.shape[2] == 1:
+            out = out[..., 0]
+        else:
+            out = out[..., ::-1]  # OpenCV BGR → RGB
+            if np.array_equal(out[..., 0], out[..., 1]) and np.array_equal(out[..., 1], out[..., 2]):
+                out = out[..., 0]
+    return np.ascontiguousarray(out)
+
+
+def check_frame_matches(image: np.ndarray, width: int, height: int, path) -> None:
+    if image.shape[:2] != (height, width):
+        raise InputError(
+            f"image is {image.shape[1]}x{image.shape[0]} but the events' sensor is "
+            f"{width}x{height}", path=path, hint="pass the matching frame, or --sensor WxH")

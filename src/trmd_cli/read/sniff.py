@@ -1,0 +1,89 @@
+"""Identify a file's format: magic bytes first, extension second (like faery)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import FormatError, InputError
+
+__all__ = ["detect_format", "FORMATS"]
+
+#: format name → one-line description (for messages and `trmd info`)
+FORMATS = {
+    "text": "text events, one per line (t x y p)",
+    "npz": "NumPy .npz archive",
+    "npy": "NumPy .npy array",
+    "hdf5": "HDF5 (trmd layout, event_utils/e2vid, DSEC)",
+    "aedat4": "iniVation AEDAT 4.0",
+    "evt3": "Prophesee EVT 3.0 .raw",
+    "evt2": "Prophesee EVT 2.0 .raw",
+    "dat": "Prophesee .dat (CD events)",
+    "mat": "MATLAB .mat (eSL-Net layout)",
+}
+
+_EXT = {
+    ".txt": "text", ".csv": "text", ".dat": "dat", ".npz": "npz", ".npy": "npy", ".h5": "hdf5",
+    ".hdf5": "hdf5", ".hdf": "hdf5", ".aedat4": "aedat4", ".mat": "mat", ".raw": None,
+}
+
+
+def detect_format(path: str | Path) -> str:
+    """Return a key of :data:`FORMATS`.
+
+    Raises:
+        InputError: the file does not exist or is a folder.
+        FormatError: the format cannot be recognised (names the formats supported).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError("file not found", path=path, hint="check the path")
+    if path.is_dir():
+        raise InputError("is a folder, expected an event file", path=path)
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
+    if not head:
+        raise FormatError("file is empty", path=path)
+    if head.startswith(b"\x89HDF\r\n\x1a\n") or (head.startswith(b"MATLAB 7.3") and len(head) > 520
+                                               and head[512:520] == b"\x89HDF\r\n\x1a\n"):
+        return "mat" if head.startswith(b"MATLAB") else "hdf5"
+    if head.startswith(b"MATLAB 5.0 MAT-file"):
+        return "mat"
+    if head.startswith(b"PK\x03\x04") or head.startswith(b"PK\x05\x06"):
+        return "npz"
+    if head.startswith(b"\x93NUMPY"):
+        return "npy"
+    if head.startswith(b"#!AER-DAT4"):
+        return "aedat4"
+    if head.startswith(b"#!AER-DAT"):
+        raise FormatError(f"{head[:12].decode(errors='replace')} files are not supported yet",
+                          path=path, hint="convert to AEDAT4 with DV, or to .h5/.npz")
+    if head.startswith(b"%"):
+        text = head.decode("latin-1").lower()
+        if "evt 3.0" in text or "format evt3" in text or "evt3" in text:
+            return "evt3"
+        if "evt 2.0" in text or "format evt2" in text or "evt2" in text:
+            return "evt2"
+        if path.suffix.lower() == ".dat" or "cd events" in text or "event type" in text:
+            return "dat"
+        if path.suffix.lower() == ".raw":
+            raise FormatError("Prophesee .raw with an unknown event format", path=path,
+                              hint="only EVT 2.0 and EVT 3.0 are supported")
+    ext = _EXT.get(path.suffix.lower())
+    if ext and ext != "text":
+        raise FormatError(f"has the extension {path.suffix} but not the content of a "
+                          f"{FORMATS[ext]} file (truncated or corrupt?)", path=path)
+    if _looks_like_text(head):
+        return "text"
+    raise FormatError("unknown event file format", path=path,
+                      hint="supported: " + ", ".join(sorted(FORMATS)))
+
+
+def _looks_like_text(head: bytes) -> bool:
+    if b"\x00" in head:
+        return False
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as e:  # a multi-byte char cut at the end of the sample is fine
+        if e.start < len(head) - 4:
+            return False
+    return True

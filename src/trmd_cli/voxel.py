@@ -1,0 +1,93 @@
+"""SCER voxels (Chen & Yu, TMM 2024, Eq. 13) and the signed per-bin event counts they come from.
+
+The exposure ``[t0, t1]`` is cut into 2N equal bins of width Δ = (t1 − t0)/(2N). An event at time
+t falls in bin ``floor((t − t0)/Δ)`` clamped to ``[0, 2N − 1]``. With ``b_j`` the signed event
+count of bin j, the voxel for latent instant k (t0 + kΔ) is the signed sum between the middle
+instant and instant k, sign-flipped before the middle::
+
+    V(k) = −Σ_{j=k}^{N−1} b_j   for k < N        V(k) = +Σ_{j=N}^{k−1} b_j   for k > N
+
+so that V(k) ≈ (log L(k) − log L(N)) / c in both halves. V(N) ≡ 0 is dropped: the tensor has 2N
+channels ordered k = 0..N−1, N+1..2N.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError, check_shape
+from .events import EventStream, Exposure
+
+__all__ = ["event_bins", "scer_from_bins", "scer_voxels", "scer_voxels_torch", "voxel_instants"]
+
+
+def event_bins(events: EventStream, exposure: Exposure, num_bins: int) -> np.ndarray:
+    """Signed event counts per bin: (num_bins, H, W) float32.
+
+    Events outside ``[start_us, end_us]`` are ignored; one at ``end_us`` lands in the last bin.
+    """
+    if num_bins < 1:
+        raise InputError(f"num_bins must be ≥ 1, got {num_bins}")
+    h, w = events.height, events.width
+    i0 = int(np.searchsorted(events.t, exposure.start_us, side="left"))
+    i1 = int(np.searchsorted(events.t, exposure.end_us, side="right"))
+    t = events.t[i0:i1]
+    if len(t) == 0:
+        return np.zeros((num_bins, h, w), np.float32)
+    # integer arithmetic: exact bin edges whatever the magnitude of t
+    b = ((t - exposure.start_us) * num_bins) // exposure.duration_us
+    np.clip(b, 0, num_bins - 1, out=b)
+    flat = b * (h * w) + events.y[i0:i1].astype(np.int64) * w + events.x[i0:i1]
+    counts = np.bincount(flat, weights=events.p[i0:i1], minlength=num_bins * h * w)
+    return counts.astype(np.float32).reshape(num_bins, h, w)
+
+
+def scer_from_bins(bins):
+    """SCER voxels (2N, H, W) from signed bin counts (2N, H, W); numpy or torch in, same out."""
+    check_shape(bins, (None, None, None), "bins")
+    m = bins.shape[0]
+    if m % 2:
+        raise InputError(f"SCER needs an even number of bins (2N), got {m}")
+    n = m // 2
+    if isinstance(bins, np.ndarray):
+        before = -np.flip(np.cumsum(np.flip(bins[:n], 0), 0), 0)  # k = 0..N-1
+        after = np.cumsum(bins[n:], 0)  # k = N+1..2N
+        return np.concatenate([before, after], 0).astype(np.float32, copy=False)
+    import torch
+
+    before = -torch.flip(torch.cumsum(torch.flip(bins[:n], (0,)), 0), (0,))
+    after = torch.cumsum(bins[n:], 0)
+    return torch.cat([before, after], 0)
+
+
+def scer_voxels(events: EventStream, exposure: Exposure, n: int = 3) -> np.ndarray:
+    """SCER voxels (2N, H, W) float32 for one exposure window."""
+    if n < 1:
+        raise InputError(f"N must be ≥ 1, got {n}", hint="use --n 3 (7 latent frames)")
+    return scer_from_bins(event_bins(events, exposure, 2 * n))
+
+
+def scer_voxels_torch(x, y, t_us, p, exposure: Exposure, n: int, height: int, width: int):
+    """Torch twin of :func:`scer_voxels` for event tensors already on a device.
+
+    Args:
+        x, y: (E,) integer tensors; t_us: (E,) int64 µs; p: (E,) ±1.
+    Returns:
+        (2N, H, W) float32 tensor on the same device.
+    """
+    import torch
+
+    m = 2 * n
+    keep = (t_us >= exposure.start_us) & (t_us <= exposure.end_us)
+    t, xs, ys, ps = t_us[keep], x[keep].long(), y[keep].long(), p[keep].float()
+    b = torch.div((t - exposure.start_us) * m, exposure.duration_us, rounding_mode="floor")
+    b = b.clamp_(0, m - 1)
+    flat = b * (height * width) + ys * width + xs
+    out = torch.zeros(m * height * width, dtype=torch.float32, device=t.device)
+    out.index_add_(0, flat, ps)
+    return scer_from_bins(out.view(m, height, width))
+
+
+def voxel_instants(n: int) -> list[int]:
+    """Latent-frame index k of each voxel channel: [0..N−1, N+1..2N]."""
+    return [k for k in range(2 * n + 1) if k != n]

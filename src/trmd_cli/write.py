@@ -1,0 +1,299 @@
+"""Every file the tool writes goes through here: temporary name in the same folder, then
+``os.replace`` — so an interrupted run never leaves a half-written output, and an output folder
+is assembled aside and swapped in whole.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError, OutputExistsError
+
+__all__ = [
+    "atomic_path",
+    "atomic_dir",
+    "check_output",
+    "to_uint",
+    "write_image",
+    "write_json",
+    "write_text",
+    "write_npz",
+]
+
+
+def check_output(path: str | Path, overwrite: bool) -> Path:
+    """Refuse an output that exists and is not an empty folder, unless ``overwrite``."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        if not (path.is_dir() and not any(path.iterdir())):
+            raise OutputExistsError("output already exists", path=path,
+                                    hint="pass --overwrite to replace it, or choose another path")
+    if not path.parent.exists():
+        raise InputError("the output's parent folder does not exist", path=path.parent,
+                         hint="create it first")
+    return path
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success rename it onto ``path``.
+
+    The temporary name keeps the real suffix so libraries that pick a format by extension work.
+    On any exception (Ctrl-C included) the temporary file is removed and ``path`` is untouched.
+    """
+    path = Path(path)
+    suffix = path.suffix if suffix is None else suffix
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{suffix}", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp_path.unlink()
+        raise
+
+
+@contextlib.contextmanager
+def atomic_dir(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary folder beside ``path``; on success it replaces ``path`` whole.
+
+    An existing ``path`` (already allowed by :func:`check_output`) is removed only after the
+    new folder is complete.
+    """
+    path = Path(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    try:
+        yield tmp
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            os.replace(path, old)
+            os.replace(tmp, path)
+            if old.is_dir():
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                old.unlink(missing_ok=True)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def to_uint(image: np.ndarray, bit_depth: int = 8) -> np.ndarray:
+    """[0, 1] float → uint8/uint16, clipping out-of-range values."""
+    if bit_depth not in (8, 16):
+        raise InputError(f"bit depth must be 8 or 16, got {bit_depth}")
+    top = 255 if bit_depth == 8 else 65535
+    out = np.clip(np.nan_to_num(image, nan=0.0), 0.0, 1.0) * top + 0.5
+    return out.astype(np.uint8 if bit_depth == 8 else np.uint16)
+
+
+def _encode(path: Path, image: np.ndarray, bit_depth: int) -> None:
+    import cv2
+
+    arr = image if image.dtype in (np.uint8, np.uint16) else to_uint(image, bit_depth)
+    if arr.ndim == 3:
+        arr = arr[..., ::-1]  # RGB → OpenCV's BGR
+    if not cv2.imwrite(str(path), np.ascontiguousarray(arr)):
+        raise InputError("could not encode image", path=path,
+                         hint="use .png, .jpg or .tif")
+
+
+def write_image(path: str | Path, image: np.ndarray, bit_depth: int = 8) -> Path:
+    """Write a [0, 1] float (or uint8/uint16) image, (H, W) or (H, W, 3) RGB, atomically."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        _encode(tmp, image, bit_depth)
+    return path
+
+
+def write_json(path: str | Path, obj) -> Path:
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+    return path
+
+
+def write_text(path: str | Path, text: str) -> Path:
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return path
+
+
+def write_npz(path: str | Path, compress: bool = False, **arrays) -> Path:
+    path = Path(path)
+    with atomic_path(path, suffix=".npz") as tmp:
+        with open(tmp, "wb") as fh:
+            (np.savez_compressed if compress else np.savez)(fh, **arrays)
+    return path
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+# --------------------------------------------------------------------------------------------
+# Event files in the project's own layouts (docs/formats.md)
+
+#: version of the trmd HDF5 layout written here
+H5_LAYOUT_VERSION = 1
+
+
+class H5Writer:
+    """Incremental writer of the trmd HDF5 layout (atomic: a temp file renamed on close).
+
+    Layout: root attrs ``format="trmd"``, ``version``, ``width``, ``height``; ``events/x,y``
+    uint16, ``events/t`` int64 µs, ``events/p`` int8 ±1; ``frames/blurry`` (K, H, W[, 3])
+    float32 [0, 1]; ``frames/exposure_start``, ``frames/exposure_end`` (K,) int64 µs; optional
+    ``frames/sharp`` (K, 2N+1, H, W[, 3]) float32 and ``frames/contrast`` (K,) float32 (the
+    simulator's true mean contrast threshold). Events of consecutive samples share one timeline.
+
+    Usage::
+
+        with H5Writer("out.h5", 346, 260) as w:
+            w.add_events(stream)
+            w.add_frame(blurry, Exposure(0, 10_000), sharp=gt, contrast=0.2)
+    """
+
+    def __init__(self, path: str | Path, width: int, height: int, *, compression: str | None = None,
+                 attrs: dict | None = None):
+        import h5py
+
+        self.path = Path(path)
+        self.width, self.height = int(width), int(height)
+        self._ctx = atomic_path(self.path, suffix=".h5")
+        self._tmp = self._ctx.__enter__()
+        self._f = h5py.File(self._tmp, "w")
+        self._comp = compression
+        self._f.attrs.update({"format": "trmd", "version": H5_LAYOUT_VERSION,
+                              "width": self.width, "height": self.height, **(attrs or {})})
+        ev = self._f.create_group("events")
+        for key, dt in (("x", "u2"), ("y", "u2"), ("t", "i8"), ("p", "i1")):
+            ev.create_dataset(key, (0,), dtype=dt, maxshape=(None,), chunks=(1 << 16,),
+                              compression=compression)
+        self._frames = None
+        self._last_t = -1
+
+    def add_events(self, stream) -> None:
+        if len(stream) == 0:
+            return
+        if int(stream.t[0]) < self._last_t:
+            raise InputError("events must be added in time order")
+        ev = self._f["events"]
+        n0 = ev["t"].shape[0]
+        for key in "xytp":
+            ds = ev[key]
+            ds.resize((n0 + len(stream),))
+            ds[n0:] = getattr(stream, key)
+        self._last_t = int(stream.t[-1])
+
+    def add_frame(self, blurry: np.ndarray, exposure, sharp: np.ndarray | None = None,
+                  contrast: float | None = None) -> None:
+        blurry = np.asarray(blurry, np.float32)
+        if blurry.shape[:2] != (self.height, self.width):
+            raise InputError(f"frame is {blurry.shape[1]}x{blurry.shape[0]}, the file's sensor "
+                             f"is {self.width}x{self.height}")
+        if self._frames is None:
+            g = self._f.create_group("frames")
+            chunk = (1, *blurry.shape)
+            g.create_dataset("blurry", (0, *blurry.shape), "f4", maxshape=(None, *blurry.shape),
+                             chunks=chunk, compression=self._comp)
+            g.create_dataset("exposure_start", (0,), "i8", maxshape=(None,))
+            g.create_dataset("exposure_end", (0,), "i8", maxshape=(None,))
+            if sharp is not None:
+                s = np.shape(sharp)
+                g.create_dataset("sharp", (0, *s), "f4", maxshape=(None, *s), chunks=(1, *s),
+                                 compression=self._comp)
+            if contrast is not None:
+                g.create_dataset("contrast", (0,), "f4", maxshape=(None,))
+            self._frames = g
+        g = self._frames
+        k = g["blurry"].shape[0]
+        for name, value in (("blurry", blurry), ("exposure_start", exposure.start_us),
+                            ("exposure_end", exposure.end_us), ("sharp", sharp),
+                            ("contrast", contrast)):
+            if name not in g:
+                if value is not None:
+                    raise InputError(f"'{name}' given for frame {k} but not for the first frame")
+                continue
+            if value is None:
+                raise InputError(f"'{name}' missing for frame {k} (the first frame had it)")
+            g[name].resize((k + 1, *g[name].shape[1:]))
+            g[name][k] = value
+
+    def close(self, ok: bool = True) -> None:
+        if self._f is None:
+            return
+        self._f.close()
+        self._f = None
+        if ok:
+            self._ctx.__exit__(None, None, None)
+        else:
+            self._ctx.__exit__(RuntimeError, RuntimeError("aborted"), None)
+
+    def __enter__(self) -> "H5Writer":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close(True)
+        else:
+            try:
+                self._f.close()
+            finally:
+                self._f = None
+                self._ctx.__exit__(exc_type, exc, tb)
+
+
+def write_h5(path: str | Path, stream, *, blurry=None, exposures=None, sharp=None,
+             contrast=None, compression: str | None = None) -> Path:
+    """Write events (and optionally frames) in the trmd HDF5 layout, atomically."""
+    with H5Writer(path, stream.width, stream.height, compression=compression) as w:
+        w.add_events(stream)
+        for k in range(0 if blurry is None else len(blurry)):
+            w.add_frame(blurry[k], exposures[k], None if sharp is None else sharp[k],
+                        None if contrast is None else float(np.ravel(contrast)[k]))
+    return Path(path)
+
+
+def write_events_npz(path: str | Path, stream, exposures=None) -> Path:
+    """Events as ``x, y, t (int64 µs), p (int8), width, height`` [+ exposure_start/end]."""
+    extra = {}
+    if exposures:
+        extra = {"exposure_start": np.array([e.start_us for e in exposures], np.int64),
+                 "exposure_end": np.array([e.end_us for e in exposures], np.int64)}
+    return write_npz(path, x=stream.x, y=stream.y, t=stream.t, p=stream.p,
+                     width=np.int64(stream.width), height=np.int64(stream.height), **extra)
+
+
+def write_events_text(path: str | Path, stream) -> Path:
+    """E2VID-style text: first line ``W H``, then ``t x y p`` with t in float seconds and p 0/1."""
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "w") as fh:
+        fh.write(f"{stream.width} {stream.height}\n")
+        if len(stream):
+            # seconds with µs resolution, written via integer parts so no float rounding
+            sec, us = np.divmod(stream.t, 1_000_000)
+            cols = np.stack([sec, us, stream.x, stream.y, (stream.p > 0)], 1).astype(np.int64)
+            lines = "\n".join(f"{a}.{b:06d} {c} {d} {e}" for a, b, c, d, e in cols.tolist())
+            fh.write(lines + "\n")
+    return path
