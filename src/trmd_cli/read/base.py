@@ -72,6 +72,11 @@ class Recording(ABC):
     def time_range_us(self) -> tuple[int, int]:
         """(first, last) event time in µs; (0, 0) when there are no events."""
 
+    def iter_chunks(self, max_events: int = 1 << 22) -> Iterator[EventStream]:
+        """All events in time order, in pieces of at most ``max_events`` where the format
+        allows (bounded memory for whole-file statistics and conversion)."""
+        yield self.events()
+
     def frames(self) -> Iterator[Frame]:
         """Frames stored in the file, in time order (none by default)."""
         return iter(())

@@ -1,0 +1,58 @@
+"""`trmd convert IN -o OUT.npz|.h5|.txt`: rewrite an event file in another format."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .boundary import guarded, warn
+from .options import Columns, OneBased, Overwrite, Sensor, TimeUnit, read_options
+
+
+def convert(
+    source: Annotated[Path, typer.Argument(help="Event file to read.")],
+    output: Annotated[Path, typer.Option("--output", "-o",
+                                         help="Output file: .npz, .h5 or .txt.")],
+    time_unit: TimeUnit = None,
+    columns: Columns = None,
+    one_based: OneBased = False,
+    sensor: Sensor = None,
+    overwrite: Overwrite = False,
+) -> None:
+    """Convert events (and frames with exposure windows, for .h5) to npz, HDF5 or text."""
+    from ..errors import InputError
+    from ..read import open_events
+    from ..write import H5Writer, check_output, write_events_npz, write_events_text
+
+    kind = output.suffix.lower()
+    if kind not in (".npz", ".h5", ".hdf5", ".txt"):
+        raise InputError(f"unknown output type {output.suffix!r}", path=output,
+                         hint="use .npz, .h5 or .txt")
+    with open_events(source, read_options(columns, one_based, time_unit, sensor)) as rec:
+        check_output(output, overwrite)
+        for w in rec.warnings:
+            warn(w)
+        n = rec.num_events()
+        if kind in (".h5", ".hdf5"):
+            with H5Writer(output, rec.width, rec.height) as w:
+                for chunk in rec.iter_chunks():
+                    w.add_events(chunk)
+                for fr in rec.frames():
+                    if fr.exposure is not None:
+                        w.add_frame(fr.image, fr.exposure)
+        else:
+            stream = rec.events()
+            windows = rec.frame_exposures() or rec.stored_windows()
+            if kind == ".npz":
+                write_events_npz(output, stream, windows)
+            else:
+                if windows:
+                    warn("text output keeps events only; exposure windows are dropped")
+                write_events_text(output, stream)
+    typer.echo(f"wrote {output}: {n} events")
+
+
+def register(app: typer.Typer) -> None:
+    app.command(name="convert")(guarded(convert))

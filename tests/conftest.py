@@ -1,0 +1,24 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+#: real recordings and images beside the repo (never copied into it)
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+needs_shared = pytest.mark.skipif(not SHARED.exists(), reason="../shared/data is absent")
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(1234)
+
+
+def random_stream(rng, n=5000, width=40, height=30, t_max=100_000):
+    from trmd_cli.events import make_stream
+
+    t = np.sort(rng.integers(0, t_max, n))
+    return make_stream(rng.integers(0, width, n), rng.integers(0, height, n), t,
+                       rng.integers(0, 2, n), width, height)

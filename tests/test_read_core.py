@@ -1,0 +1,244 @@
+"""Text, NumPy and HDF5 readers: layouts, units, round trips, and bad input."""
+
+from __future__ import annotations
+
+import pickle
+
+import h5py
+import numpy as np
+import pytest
+
+from trmd_cli.errors import FormatError, InputError
+from trmd_cli.events import Exposure, make_stream
+from trmd_cli.read import ReadOptions, detect_format, open_events
+from trmd_cli.read.units import to_microseconds
+from trmd_cli.write import write_events_npz, write_events_text, write_h5
+
+from .conftest import random_stream
+
+
+def _same(a, b):
+    for k in "xytp":
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+    assert (a.width, a.height) == (b.width, b.height)
+
+
+# ---------------------------------------------------------------- units
+def test_unit_conversion_round_trips():
+    us = np.array([0, 1, 999_999, 1_000_000, 123_456_789], np.int64)
+    for unit, scale in (("s", 1e6), ("ms", 1e3), ("us", 1)):
+        np.testing.assert_array_equal(to_microseconds(us / scale, unit), us)
+    np.testing.assert_array_equal(to_microseconds(us * 1000, "ns"), us)
+    np.testing.assert_array_equal(to_microseconds(us // 1000, "ms"), us // 1000 * 1000)
+    # epoch seconds keep microsecond resolution in float64
+    t = 1.6e9 + np.array([0.000001, 0.5, 0.104])
+    np.testing.assert_array_equal(to_microseconds(t, None) - 1_600_000_000_000_000,
+                                  [1, 500_000, 104_000])
+
+
+# ---------------------------------------------------------------- text
+def test_text_ecd_float_seconds(tmp_path):
+    f = tmp_path / "events.txt"
+    f.write_text("0.000100 3 4 1\n0.000250 5 6 0\n0.001000 1 2 1\n")
+    s = open_events(f, ReadOptions(sensor=(10, 8))).events()
+    assert s.t.tolist() == [100, 250, 1000]
+    assert s.x.tolist() == [3, 5, 1] and s.y.tolist() == [4, 6, 2]
+    assert s.p.tolist() == [1, -1, 1]
+
+
+def test_text_e2vid_header_size(tmp_path):
+    f = tmp_path / "events.txt"
+    f.write_text("240 180\n0.5 239 179 1\n0.75 0 0 0\n")
+    rec = open_events(f)
+    assert rec.sensor_size() == (240, 180) and not rec.warnings
+    assert rec.events().t.tolist() == [500_000, 750_000]
+
+
+def test_text_evdi_integer_us_columns_one_based_header(tmp_path):
+    f = tmp_path / "events.csv"
+    f.write_text("# recorded by something\ntimestamp,y,x,polarity\n10,1,2,1\n20,3,4,-1\n")
+    s = open_events(f, ReadOptions(columns=("t", "y", "x", "p"), one_based=True,
+                                   sensor=(5, 5))).events()
+    assert s.t.tolist() == [10, 20]
+    assert s.x.tolist() == [1, 3] and s.y.tolist() == [0, 2]
+    assert s.p.tolist() == [1, -1]
+
+
+def test_text_time_unit_override(tmp_path):
+    f = tmp_path / "e.txt"
+    f.write_text("1 0 0 1\n2 0 0 1\n")
+    assert open_events(f, ReadOptions(time_unit="ms")).events().t.tolist() == [1000, 2000]
+    assert open_events(f).events().t.tolist() == [1, 2]
+
+
+def test_text_round_trip(tmp_path, rng):
+    s = random_stream(rng, n=3000)
+    write_events_text(tmp_path / "e.txt", s)
+    _same(open_events(tmp_path / "e.txt").events(), s)
+
+
+@pytest.mark.parametrize("body,msg", [
+    ("0.1 1 1 1\n0.05 1 1 1\n", "not sorted"),
+    ("0.1 1 1 1\nnan 1 1 1\n", "non-finite"),
+    ("-0.1 1 1 1\n", "negative"),
+    ("0.1 1 1 1\n0.2 oops 1 1\n", "malformed"),
+    ("0.1 1 1\n", "columns"),
+    ("0.1 1 1 7\n", "polarity"),
+    ("# nothing here\n", "no event lines"),
+])
+def test_text_bad(tmp_path, body, msg):
+    f = tmp_path / "bad.txt"
+    f.write_text(body)
+    with pytest.raises((InputError, FormatError), match=msg):
+        open_events(f)
+
+
+def test_coordinates_outside_sensor(tmp_path):
+    f = tmp_path / "e.txt"
+    f.write_text("0.1 12 1 1\n")
+    with pytest.raises(InputError, match="outside the sensor width 10"):
+        open_events(f, ReadOptions(sensor=(10, 10)))
+
+
+# ---------------------------------------------------------------- numpy
+def test_npz_round_trip_with_windows(tmp_path, rng):
+    s = random_stream(rng)
+    wins = [Exposure(0, 40_000), Exposure(50_000, 90_000)]
+    write_events_npz(tmp_path / "e.npz", s, wins)
+    rec = open_events(tmp_path / "e.npz")
+    _same(rec.events(), s)
+    assert rec.stored_windows() == wins
+
+
+@pytest.mark.parametrize("keys", [("xs", "ys", "ts", "ps"), ("x", "y", "timestamp", "polarity")])
+def test_npz_key_variants_float_seconds(tmp_path, keys):
+    np.savez(tmp_path / "e.npz", **dict(zip(keys, (np.array([1, 2]), np.array([0, 1]),
+                                                  np.array([0.5, 1.25]), np.array([True, False])))))
+    rec = open_events(tmp_path / "e.npz")
+    assert rec.events().t.tolist() == [500_000, 1_250_000]
+    assert rec.events().p.tolist() == [1, -1]
+    assert rec.warnings  # size guessed
+
+
+def test_npz_structured_and_npy(tmp_path, rng):
+    s = random_stream(rng, n=100)
+    np.savez(tmp_path / "e.npz", events=s.to_structured(), width=40, height=30)
+    _same(open_events(tmp_path / "e.npz").events(), s)
+    np.save(tmp_path / "e.npy", s.to_structured())
+    _same(open_events(tmp_path / "e.npy", ReadOptions(sensor=(40, 30))).events(), s)
+    cols = np.stack([s.t, s.x, s.y, s.p], 1)
+    np.save(tmp_path / "c.npy", cols)
+    _same(open_events(tmp_path / "c.npy", ReadOptions(sensor=(40, 30))).events(), s)
+
+
+def test_npz_pickle_refused(tmp_path):
+    np.savez(tmp_path / "e.npz", x=np.array([{"evil": 1}], dtype=object), y=np.zeros(1),
+             t=np.zeros(1), p=np.zeros(1))
+    with pytest.raises(FormatError, match="pickled"):
+        open_events(tmp_path / "e.npz")
+
+
+def test_npz_missing_keys_and_truncated(tmp_path, rng):
+    np.savez(tmp_path / "e.npz", a=np.zeros(3))
+    with pytest.raises(FormatError, match="no event arrays"):
+        open_events(tmp_path / "e.npz")
+    write_events_npz(tmp_path / "g.npz", random_stream(rng))
+    data = (tmp_path / "g.npz").read_bytes()
+    (tmp_path / "t.npz").write_bytes(data[: len(data) // 2])
+    with pytest.raises(FormatError):
+        open_events(tmp_path / "t.npz")
+
+
+def test_pickle_file_is_not_text(tmp_path):
+    (tmp_path / "e.npz").write_bytes(pickle.dumps({"x": [1]}))
+    with pytest.raises(FormatError):
+        open_events(tmp_path / "e.npz")
+
+
+# ---------------------------------------------------------------- hdf5
+def test_h5_round_trip_lazy_windows(tmp_path, rng, monkeypatch):
+    import trmd_cli.read.hdf5 as h5mod
+
+    monkeypatch.setattr(h5mod, "STRIDE", 7)  # exercise the coarse index with many blocks
+    s = random_stream(rng, n=4000)
+    blurry = rng.random((2, 30, 40)).astype(np.float32)
+    sharp = rng.random((2, 7, 30, 40)).astype(np.float32)
+    wins = [Exposure(0, 30_000), Exposure(50_000, 80_000)]
+    write_h5(tmp_path / "e.h5", s, blurry=blurry, exposures=wins, sharp=sharp,
+             contrast=[0.2, 0.3])
+    with open_events(tmp_path / "e.h5") as rec:
+        _same(rec.events(), s)
+        for a, b in [(0, 1), (123, 45_678), (99_999, 200_000), (-5, 3)]:
+            _same(rec.events(a, b), s.slice(a, b))
+        assert rec.frame_exposures() == wins
+        frames = list(rec.frames())
+        np.testing.assert_array_equal(frames[1].image, blurry[1])
+        np.testing.assert_array_equal(rec.ground_truth(1), sharp[1])
+        assert rec.contrast(1) == pytest.approx(0.3)
+        assert sum(len(c) for c in rec.iter_chunks(999)) == len(s)
+
+
+def test_h5_event_utils_and_dsec_layouts(tmp_path):
+    with h5py.File(tmp_path / "eu.h5", "w") as f:
+        f.attrs["sensor_resolution"] = (180, 240)
+        f["events/xs"] = np.array([1, 2], np.int16)
+        f["events/ys"] = np.array([3, 4], np.int16)
+        f["events/ts"] = np.array([0.25, 0.5])
+        f["events/ps"] = np.array([1, 0], np.int8)
+    rec = open_events(tmp_path / "eu.h5")
+    assert rec.sensor_size() == (240, 180)
+    assert rec.events().t.tolist() == [250_000, 500_000] and rec.events().p.tolist() == [1, -1]
+    with h5py.File(tmp_path / "dsec.h5", "w") as f:
+        f["events/x"] = np.array([1, 2], np.uint16)
+        f["events/y"] = np.array([3, 4], np.uint16)
+        f["events/t"] = np.array([10, 20], np.uint32)
+        f["events/p"] = np.array([0, 1], np.uint8)
+        f["t_offset"] = np.int64(1_000_000)
+    s = open_events(tmp_path / "dsec.h5", ReadOptions(sensor=(640, 480))).events()
+    assert s.t.tolist() == [1_000_010, 1_000_020] and s.p.tolist() == [-1, 1]
+
+
+def test_h5_bad(tmp_path, rng):
+    with h5py.File(tmp_path / "x.h5", "w") as f:
+        f["stuff"] = np.zeros(3)
+    with pytest.raises(FormatError, match="no 'events' group"):
+        open_events(tmp_path / "x.h5")
+    write_h5(tmp_path / "g.h5", random_stream(rng, n=100_000))
+    data = (tmp_path / "g.h5").read_bytes()
+    (tmp_path / "t.h5").write_bytes(data[: len(data) // 3])
+    with pytest.raises(FormatError):
+        rec = open_events(tmp_path / "t.h5")
+        rec.events()
+    with h5py.File(tmp_path / "u.h5", "w") as f:
+        f.attrs.update(width=4, height=4)
+        for k, v in dict(x=[0, 1], y=[0, 1], t=[5, 1], p=[1, 1]).items():
+            f[f"events/{k}"] = np.array(v)
+    with pytest.raises(InputError, match="not sorted"):
+        open_events(tmp_path / "u.h5").events()
+
+
+# ---------------------------------------------------------------- sniffing
+def test_sniff_by_magic_not_extension(tmp_path, rng):
+    write_events_npz(tmp_path / "e.npz", random_stream(rng))
+    (tmp_path / "misnamed.txt").write_bytes((tmp_path / "e.npz").read_bytes())
+    assert detect_format(tmp_path / "misnamed.txt") == "npz"
+    (tmp_path / "empty.txt").write_bytes(b"")
+    with pytest.raises(FormatError, match="empty"):
+        detect_format(tmp_path / "empty.txt")
+    (tmp_path / "noise.bin").write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(FormatError, match="unknown"):
+        detect_format(tmp_path / "noise.bin")
+    (tmp_path / "fake.h5").write_text("0.1 1 1 1\n")
+    with pytest.raises(FormatError, match="not the content"):
+        detect_format(tmp_path / "fake.h5")
+    with pytest.raises(InputError, match="not found"):
+        detect_format(tmp_path / "missing.npz")
+
+
+def test_make_stream_never_mutates(rng):
+    x = np.array([3, 1]); y = np.array([0, 0]); t = np.array([5, 1]); p = np.array([0, 1])
+    copies = [a.copy() for a in (x, y, t, p)]
+    s = make_stream(x, y, t, p, 4, 1, sort=True)
+    assert s.t.tolist() == [1, 5] and s.x.tolist() == [1, 3]
+    for a, c in zip((x, y, t, p), copies):
+        np.testing.assert_array_equal(a, c)

@@ -1,0 +1,103 @@
+"""SCER voxels against hand-computed cases, numpy vs torch, and invariants."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from trmd_cli.errors import InputError
+from trmd_cli.events import Exposure, make_stream
+from trmd_cli.voxel import event_bins, scer_from_bins, scer_voxels, scer_voxels_torch, voxel_instants
+
+from .conftest import random_stream
+
+
+def _one_pixel(times, pols, width=2, height=1):
+    return make_stream(np.zeros(len(times), int), np.zeros(len(times), int), times, pols,
+                       width, height)
+
+
+def test_hand_computed_n2():
+    # exposure 0..400 µs, N=2 → 4 bins of 100 µs; the event at t=400 clamps into the last bin
+    ev = _one_pixel([50, 150, 250, 350, 400], [1, 0, 1, 1, 1])
+    bins = event_bins(ev, Exposure(0, 400), 4)
+    assert bins[:, 0, 0].tolist() == [1, -1, 1, 2]
+    assert bins[:, 0, 1].tolist() == [0, 0, 0, 0]
+    v = scer_voxels(ev, Exposure(0, 400), n=2)
+    # V(0) = -(b0+b1) = 0, V(1) = -b1 = 1, V(3) = b2 = 1, V(4) = b2+b3 = 3
+    assert v[:, 0, 0].tolist() == [0, 1, 1, 3]
+    assert voxel_instants(2) == [0, 1, 3, 4]
+
+
+def test_events_outside_window_ignored_and_edges():
+    ev = _one_pixel([99, 100, 199, 200, 300, 301], [1, 1, 1, 1, 1, 1])
+    bins = event_bins(ev, Exposure(100, 300), 2)  # bins [100,200) [200,300]
+    assert bins[:, 0, 0].tolist() == [2, 2]
+
+
+def test_n3_shapes_and_sign_convention():
+    # a pixel that only brightens: voxels before the middle are negative, after positive
+    ev = _one_pixel(np.arange(0, 600, 10), np.ones(60, int))
+    v = scer_voxels(ev, Exposure(0, 600), n=3)
+    assert v.shape == (6, 1, 2) and v.dtype == np.float32
+    # 10 events per 100 µs bin: V(k) = 10·(k−3)
+    assert v[:, 0, 0].tolist() == [-30, -20, -10, 10, 20, 30]
+
+
+def test_torch_twin_matches_numpy(rng):
+    torch = pytest.importorskip("torch")
+    ev = random_stream(rng, n=20000)
+    win = Exposure(10_000, 90_001)
+    ref = scer_voxels(ev, win, 3)
+    got = scer_voxels_torch(torch.from_numpy(ev.x.astype(np.int64)),
+                            torch.from_numpy(ev.y.astype(np.int64)), torch.from_numpy(ev.t),
+                            torch.from_numpy(ev.p), win, 3, ev.height, ev.width)
+    np.testing.assert_array_equal(got.numpy(), ref)
+    np.testing.assert_array_equal(scer_from_bins(torch.from_numpy(event_bins(ev, win, 6))).numpy(),
+                                  ref)
+
+
+def test_inputs_not_mutated(rng):
+    ev = random_stream(rng)
+    before = [getattr(ev, k).copy() for k in "xytp"]
+    scer_voxels(ev, Exposure(0, 100_000), 3)
+    for k, b in zip("xytp", before):
+        np.testing.assert_array_equal(getattr(ev, k), b)
+
+
+def test_bad_n():
+    ev = _one_pixel([1], [1])
+    with pytest.raises(InputError):
+        scer_voxels(ev, Exposure(0, 10), n=0)
+    with pytest.raises(InputError):
+        scer_from_bins(np.zeros((3, 1, 1), np.float32))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 999), st.integers(0, 3), st.integers(0, 2),
+                          st.booleans()), max_size=200),
+       st.integers(1, 4))
+def test_property_voxels_equal_bruteforce(events, n):
+    events = sorted(events)
+    t = np.array([e[0] for e in events], np.int64)
+    x = np.array([e[1] for e in events], np.int64)
+    y = np.array([e[2] for e in events], np.int64)
+    p = np.array([e[3] for e in events], bool)
+    ev = make_stream(x, y, t, p, 4, 3)
+    win = Exposure(0, 1000)
+    v = scer_voxels(ev, win, n)
+    # brute force from the definition: V(k) = sgn(k−N) · Σ events between instants N and k
+    inst = np.arange(2 * n + 1) * 1000 / (2 * n)
+    expect = np.zeros((2 * n, 3, 4))
+    for c, k in enumerate(voxel_instants(n)):
+        lo, hi = sorted((inst[k], inst[n]))
+        for ti, xi, yi, pi in zip(t, x, y, p):
+            # bins are half-open [lo, hi); the exposure end belongs to the last bin
+            inside = lo <= ti < hi or (ti == 1000 and hi == 1000)
+            if inside:
+                expect[c, yi, xi] += (1 if pi else -1) * np.sign(k - n)
+    np.testing.assert_allclose(v, expect)
+    # the sum of |channel| is monotone away from the middle for one-signed data
+    assert v.shape == (2 * n, 3, 4)
