@@ -22,3 +22,12 @@ def random_stream(rng, n=5000, width=40, height=30, t_max=100_000):
     t = np.sort(rng.integers(0, t_max, n))
     return make_stream(rng.integers(0, width, n), rng.integers(0, height, n), t,
                        rng.integers(0, 2, n), width, height)
+
+
+def pytest_configure(config):
+    import os
+
+    # under pytest-xdist each worker gets one thread: two workers already fill the two cores
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        os.environ.setdefault("MKL_NUM_THREADS", "1")

@@ -1,0 +1,103 @@
+"""RE-Net variants: parameters, MACs and CPU forward time at DAVIS346 size; end-to-end timing.
+
+Usage::
+
+    python bench/bench_renet.py                      # all registered variants, 2 threads
+    python bench/bench_renet.py --variants trmd_small --repeats 10 --threads 2
+
+Per variant: parameters, MACs (count_macs, at the padded 352×272 grid), median forward time of
+the network alone (torch.inference_mode, after warm-up). End to end (one variant): SCER voxels
+from ~300k synthetic events, TrmdEstimator call (numpy in → 2N+1 frames out, weights loaded from
+a safetensors file), and the two together. Figures depend on what else runs on the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from trmd_cli.events import EventStream, Exposure
+from trmd_cli.models import count_macs, count_params, create_model, list_models
+from trmd_cli.models.estimator import TrmdEstimator
+from trmd_cli.voxel import scer_voxels
+from trmd_cli.weights import save_weights
+
+
+def _median_time(fn, repeats: int, warmup: int) -> tuple[float, float]:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), min(times)
+
+
+def _events(width: int, height: int, count: int, exposure: Exposure, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.integers(exposure.start_us, exposure.end_us + 1, count)).astype(np.int64)
+    return EventStream(x=rng.integers(0, width, count).astype(np.uint16),
+                       y=rng.integers(0, height, count).astype(np.uint16), t=t,
+                       p=rng.choice(np.array([-1, 1], np.int8), count), width=width,
+                       height=height)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--variants", nargs="*", default=None, help="default: all registered")
+    ap.add_argument("--n", type=int, default=3)
+    ap.add_argument("--width", type=int, default=346)
+    ap.add_argument("--height", type=int, default=260)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--end-to-end", default="trmd_small", help="variant for the end-to-end run")
+    args = ap.parse_args()
+
+    torch.set_num_threads(args.threads)
+    h, w, n = args.height, args.width, args.n
+    names = args.variants or list_models()
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {w}x{h}, N={n}")
+    print(f"{'variant':12s} {'params':>9s} {'GMACs':>7s} {'median ms':>10s} {'min ms':>8s}")
+    g = torch.Generator().manual_seed(0)
+    blurry = torch.rand(1, 1, h, w, generator=g)
+    voxels = torch.randn(1, 2 * n, h, w, generator=g)
+    for name in names:
+        model = create_model(name, n=n).eval()
+        with torch.inference_mode():
+            med, best = _median_time(lambda m=model: m(blurry, voxels), args.repeats,
+                                     args.warmup)
+        print(f"{name:12s} {count_params(model) / 1e6:8.2f}M {count_macs(model, h, w) / 1e9:7.2f} "
+              f"{med * 1e3:10.1f} {best * 1e3:8.1f}", flush=True)
+
+    exposure = Exposure(0, 20_000)
+    stream = _events(w, h, 300_000, exposure)
+    frame = np.random.default_rng(1).random((h, w)).astype(np.float32)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = save_weights(Path(tmp) / "bench.safetensors",
+                            create_model(args.end_to_end, n=n), meta={})
+        t0 = time.perf_counter()
+        est = TrmdEstimator.load(path, device="cpu", threads=args.threads)
+        load_s = time.perf_counter() - t0
+    vox_med, _ = _median_time(lambda: scer_voxels(stream, exposure, n), args.repeats, 1)
+    vox = scer_voxels(stream, exposure, n)
+    est_med, _ = _median_time(lambda: est(frame, vox), args.repeats, args.warmup)
+    all_med, _ = _median_time(lambda: est(frame, scer_voxels(stream, exposure, n)),
+                              args.repeats, 1)
+    rgb = np.repeat(frame[..., None], 3, axis=2)
+    rgb_med, _ = _median_time(lambda: est(rgb, vox), max(args.repeats // 2, 1), 1)
+    print(f"end to end ({args.end_to_end}, gray model): load {load_s * 1e3:.0f} ms, "
+          f"voxels (300k events) {vox_med * 1e3:.1f} ms, estimator {est_med * 1e3:.1f} ms, "
+          f"voxels + estimator {all_med * 1e3:.1f} ms, RGB frame (3 channels) "
+          f"{rgb_med * 1e3:.1f} ms")
+
+
+if __name__ == "__main__":
+    main()

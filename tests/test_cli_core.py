@@ -1,0 +1,117 @@
+"""`trmd --version/--help`, info, voxelize, convert through the CLI: outputs and error lines."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from trmd_cli import __version__
+from trmd_cli.cli.app import app
+from trmd_cli.events import Exposure
+from trmd_cli.read import open_events
+from trmd_cli.voxel import scer_voxels
+from trmd_cli.write import write_events_npz
+
+from .conftest import random_stream
+
+runner = CliRunner()
+
+
+@pytest.fixture
+def npz(tmp_path, rng):
+    s = random_stream(rng, n=20_000)
+    path = tmp_path / "events.npz"
+    write_events_npz(path, s, [Exposure(0, 40_000), Exposure(50_000, 90_000)])
+    return path, s
+
+
+def test_version_and_help_without_torch():
+    r = runner.invoke(app, ["--version"])
+    assert r.exit_code == 0 and __version__ in r.stdout
+    # `trmd --help` must not import torch (instant start)
+    code = ("import sys; from trmd_cli.cli.app import app; "
+            "from typer.testing import CliRunner; CliRunner().invoke(app, ['--help']); "
+            "print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_info_json(npz):
+    path, s = npz
+    r = runner.invoke(app, ["info", str(path), "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    assert d["events"] == len(s) and d["sensor"] == "40x30"
+    assert d["on_fraction"] == pytest.approx(float(np.mean(s.p > 0)), abs=1e-4)
+    assert [f["events"] for f in d["frames"]] == [
+        len(s.slice(0, 40_001)), len(s.slice(50_000, 90_001))]
+
+
+def test_voxelize_matches_library(npz, tmp_path):
+    path, s = npz
+    out = tmp_path / "v.npz"
+    r = runner.invoke(app, ["voxelize", str(path), "-o", str(out), "--n", "2",
+                            "--preview", str(tmp_path / "v.png")])
+    assert r.exit_code == 0, r.output
+    with np.load(out) as z:
+        assert z["voxels"].shape == (2, 4, 30, 40)
+        np.testing.assert_array_equal(z["voxels"][1], scer_voxels(s, Exposure(50_000, 90_000), 2))
+        assert z["exposure"].tolist() == [[0, 40_000], [50_000, 90_000]]
+    assert (tmp_path / "v.png").stat().st_size > 0
+
+
+def test_voxelize_explicit_exposure_in_seconds(npz, tmp_path):
+    path, s = npz
+    out = tmp_path / "v.npz"
+    r = runner.invoke(app, ["voxelize", str(path), "-o", str(out), "--exposure", "0.01", "0.02"])
+    assert r.exit_code == 0, r.output
+    with np.load(out) as z:
+        assert z["exposure"].tolist() == [[10_000, 20_000]]
+        np.testing.assert_array_equal(z["voxels"][0], scer_voxels(s, Exposure(10_000, 20_000), 3))
+
+
+def test_convert_round_trips(npz, tmp_path):
+    path, s = npz
+    for ext in ("h5", "txt", "npz"):
+        out = tmp_path / f"c.{ext}"
+        r = runner.invoke(app, ["convert", str(path), "-o", str(out)])
+        assert r.exit_code == 0, r.output
+        got = open_events(out).events()
+        for k in "xytp":
+            np.testing.assert_array_equal(getattr(got, k), getattr(s, k))
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["info", "missing.npz"], "file not found"),
+    (["voxelize", "{npz}", "-o", "{tmp}/v.npz", "--exposure", "200000", "300000"], "outside the events"),
+    (["voxelize", "{npz}", "-o", "{tmp}/v.npz", "--exposure", "6", "5"], "empty or reversed"),
+    (["voxelize", "{npz}", "-o", "{tmp}/v.npz", "--sensor", "10"], "not WxH"),
+    (["voxelize", "{npz}", "-o", "{tmp}/v.npz", "--sensor", "10x10"], "outside the sensor"),
+    (["info", "{npz}", "--time-unit", "days"], "--time-unit"),
+    (["convert", "{npz}", "-o", "{tmp}/x.png"], "unknown output type"),
+])
+def test_bad_input_one_line_exit_2(npz, tmp_path, args, needle):
+    path, _ = npz
+    args = [a.format(npz=path, tmp=tmp_path) for a in args]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2, r.output
+    assert needle in r.output
+    assert "Traceback" not in r.output
+    assert not (tmp_path / "v.npz").exists()
+
+
+def test_existing_output_refused_then_overwritten(npz, tmp_path):
+    path, _ = npz
+    out = tmp_path / "v.npz"
+    out.write_bytes(b"keep me")
+    r = runner.invoke(app, ["voxelize", str(path), "-o", str(out)])
+    assert r.exit_code == 2 and "--overwrite" in r.output
+    assert out.read_bytes() == b"keep me"
+    r = runner.invoke(app, ["voxelize", str(path), "-o", str(out), "--overwrite"])
+    assert r.exit_code == 0
+    assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
