@@ -77,6 +77,13 @@ class Recording(ABC):
         allows (bounded memory for whole-file statistics and conversion)."""
         yield self.events()
 
+    def iter_windows(self, exposures: Sequence[Exposure],
+                     margin_us: int = 0) -> Iterator[EventStream]:
+        """Events with ``start - margin <= t <= end + margin`` per window, in the given order.
+        Chunked readers override this with one pass over the file (memory: one window)."""
+        for e in exposures:
+            yield self.events(e.start_us - margin_us, e.end_us + margin_us + 1)
+
     def frames(self) -> Iterator[Frame]:
         """Frames stored in the file, in time order (none by default)."""
         return iter(())

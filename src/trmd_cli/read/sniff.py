@@ -58,16 +58,9 @@ def detect_format(path: str | Path) -> str:
         raise FormatError(f"{head[:12].decode(errors='replace')} files are not supported yet",
                           path=path, hint="convert to AEDAT4 with DV, or to .h5/.npz")
     if head.startswith(b"%"):
-        text = head.decode("latin-1").lower()
-        if "evt 3.0" in text or "format evt3" in text or "evt3" in text:
-            return "evt3"
-        if "evt 2.0" in text or "format evt2" in text or "evt2" in text:
-            return "evt2"
-        if path.suffix.lower() == ".dat" or "cd events" in text or "event type" in text:
-            return "dat"
-        if path.suffix.lower() == ".raw":
-            raise FormatError("Prophesee .raw with an unknown event format", path=path,
-                              hint="only EVT 2.0 and EVT 3.0 are supported")
+        fmt = _prophesee_format(path, head)
+        if fmt is not None:
+            return fmt
     ext = _EXT.get(path.suffix.lower())
     if ext and ext != "text":
         raise FormatError(f"has the extension {path.suffix} but not the content of a "
@@ -76,6 +69,33 @@ def detect_format(path: str | Path) -> str:
         return "text"
     raise FormatError("unknown event file format", path=path,
                       hint="supported: " + ", ".join(sorted(FORMATS)))
+
+
+def _prophesee_format(path: Path, head: bytes) -> str | None:
+    """evt2 / evt3 / dat from a Prophesee ``%`` header (only its lines are looked at: binary data
+    after it may contain any bytes); None when the ``%`` lines are a text file's comments."""
+    from .prophesee import parse_header
+
+    header = parse_header(head)
+    suffix = path.suffix.lower()
+    encoding = header.encoding
+    if encoding is None and suffix == ".raw" and header.sensor_hint == (640, 480):
+        encoding = "evt2"  # Gen3 sensors only write EVT 2.0; old headers do not say so
+    if encoding in ("evt2", "evt3"):
+        return encoding
+    if encoding is not None:
+        raise FormatError(f"Prophesee {encoding.upper()} is not supported", path=path,
+                          hint="record or convert to EVT 2.0 / EVT 3.0 (.raw) or .dat")
+    body = head[header.data_offset:]
+    if suffix == ".dat":
+        # a plain-text table with '%' comments that happens to end in .dat
+        return "text" if body and _looks_like_text(body) else "dat"
+    if suffix == ".raw":
+        raise FormatError("Prophesee .raw with an unknown event format", path=path,
+                          hint="only EVT 2.0 and EVT 3.0 are supported")
+    if header.width and body and not _looks_like_text(body):
+        return "dat"
+    return None
 
 
 def _looks_like_text(head: bytes) -> bool:

@@ -1,0 +1,244 @@
+"""Recordings decoded chunk by chunk: camera files too large to hold in memory.
+
+A :class:`ChunkedRecording` makes one pass over the file when it is opened, checking every chunk
+(times non-decreasing, coordinates inside the sensor) and keeping a small index — per chunk its
+first and last time and its event count. Afterwards
+
+* ``events(t0, t1)`` decodes only the chunks that overlap ``[t0, t1)``: formats that can seek
+  jump straight to them, the others decode from the start and skip. The decoder stays open
+  between calls, so windows requested in time order (``iter_windows``, or one ``events`` call
+  per frame) cost one pass over the file in total, holding one window plus one chunk;
+* files of at most :data:`CACHE_MAX_EVENTS` events are kept in memory after the first pass, so
+  small recordings cost one decode whatever is asked of them.
+"""
+
+from __future__ import annotations
+
+from abc import abstractmethod
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import FormatError
+from ..events import EventStream
+from .base import Recording
+
+__all__ = ["Chunk", "ChunkedRecording", "CACHE_MAX_EVENTS"]
+
+#: recordings with at most this many events stay in memory after opening (~13 bytes per event)
+CACHE_MAX_EVENTS = 10_000_000
+
+
+@dataclass(frozen=True, eq=False)
+class Chunk:
+    """One decoded piece of a file, already in library units.
+
+    Attributes:
+        ordinal: position of the chunk in decode order (0, 1, …), empty chunks included.
+        x, y: (E,) uint16 column / row. t: (E,) int64 µs. p: (E,) int8 ±1.
+        resume: what the decoder needs to restart at this chunk (None: it cannot seek).
+    """
+
+    ordinal: int
+    x: np.ndarray
+    y: np.ndarray
+    t: np.ndarray
+    p: np.ndarray
+    resume: Any = None
+
+
+class ChunkedRecording(Recording):
+    """Base class: subclasses implement :meth:`_decode` and call :meth:`_build_index` once.
+
+    ``width``/``height`` may be None before indexing (the file stores no size); the index pass
+    then takes max+1 and records a warning.
+    """
+
+    def __init__(self, path: Path, fmt: str, width: int | None, height: int | None,
+                 warnings: list[str] | None = None) -> None:
+        self.path = Path(path)
+        self.format = fmt
+        self.width = width  # type: ignore[assignment]
+        self.height = height  # type: ignore[assignment]
+        self.warnings = [] if warnings is None else warnings
+        self._cache: EventStream | None = None
+        self._live: Iterator[Chunk] | None = None  # decoder kept open between requests
+        self._live_next = 0  # ordinal of the next chunk it yields
+        self._recent: list[Chunk] = []  # chunks of the last request, plus one read ahead
+
+    @abstractmethod
+    def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
+        """Chunks in file order, from the chunk numbered ``start`` (whose ``resume`` is given)."""
+
+    # -- index ------------------------------------------------------------------------------
+
+    def _build_index(self, chunks: Iterable[Chunk] | None = None,
+                     cache_max: int | None = None) -> None:
+        """One pass: validate every chunk, record its time span, keep small files in memory."""
+        if cache_max is None:
+            cache_max = CACHE_MAX_EVENTS
+        ordinals: list[int] = []
+        firsts: list[int] = []
+        lasts: list[int] = []
+        counts: list[int] = []
+        resumes: list[Any] = []
+        kept: list[Chunk] | None = []
+        total = 0
+        prev_last: int | None = None
+        xmax = ymax = -1
+        for ch in self._decode(0) if chunks is None else chunks:
+            n = len(ch.t)
+            if n == 0:
+                continue
+            if n > 1:
+                back = np.flatnonzero(np.diff(ch.t) < 0)
+                if len(back):
+                    raise self._time_error(total + int(back[0]) + 1)
+            if prev_last is not None and int(ch.t[0]) < prev_last:
+                raise self._time_error(total)
+            xmax = max(xmax, int(ch.x.max()))
+            ymax = max(ymax, int(ch.y.max()))
+            ordinals.append(ch.ordinal)
+            firsts.append(int(ch.t[0]))
+            lasts.append(int(ch.t[-1]))
+            counts.append(n)
+            resumes.append(ch.resume)
+            total += n
+            prev_last = lasts[-1]
+            if kept is not None:
+                kept.append(ch)
+                if total > cache_max:
+                    kept = None
+        self._settle_size(xmax, ymax)
+        self._ordinal = np.asarray(ordinals, np.int64)
+        self._first = np.asarray(firsts, np.int64)
+        self._last = np.asarray(lasts, np.int64)
+        self._count = np.asarray(counts, np.int64)
+        self._resume = resumes
+        if kept is not None:
+            self._cache = self._join(kept)
+
+    def _time_error(self, index: int) -> FormatError:
+        return FormatError(f"event {index} goes back in time (corrupt file?)", path=self.path,
+                           hint="camera files are written in time order; re-export the recording")
+
+    def _settle_size(self, xmax: int, ymax: int) -> None:
+        if self.width is None or self.height is None:
+            w, h = max(xmax + 1, 1), max(ymax + 1, 1)
+            self.width = self.width or w  # type: ignore[assignment]
+            self.height = self.height or h  # type: ignore[assignment]
+            self.warnings.append(f"the file stores no sensor size; using {self.width}x"
+                                 f"{self.height} from the largest coordinates (pass --sensor "
+                                 "WxH to set it)")
+        if xmax >= self.width or ymax >= self.height:
+            axis, value = ("x", xmax) if xmax >= self.width else ("y", ymax)
+            raise FormatError(f"{axis} coordinate {value} is outside the {self.width}x"
+                              f"{self.height} sensor (corrupt file, or wrong sensor size?)",
+                              path=self.path, hint="check --sensor WxH")
+
+    def _join(self, chunks: Sequence[Chunk]) -> EventStream:
+        if not chunks:
+            return EventStream.empty(self.width, self.height)
+        if len(chunks) == 1:
+            c = chunks[0]
+            return EventStream(c.x, c.y, c.t, c.p, self.width, self.height)
+        return EventStream(*(np.concatenate([getattr(c, k) for c in chunks]) for k in "xytp"),
+                           self.width, self.height)
+
+    def _window(self, chunks: Sequence[Chunk], lo: float, hi: float) -> EventStream:
+        # slice each chunk before joining: a short window inside a big chunk copies little
+        parts = [EventStream(c.x, c.y, c.t, c.p, self.width, self.height).slice(lo, hi)
+                 for c in chunks]
+        parts = [s for s in parts if len(s)]
+        if not parts:
+            return EventStream.empty(self.width, self.height)
+        return parts[0] if len(parts) == 1 else EventStream.concatenate(parts)
+
+    # -- Recording API ----------------------------------------------------------------------
+
+    def num_events(self) -> int:
+        return int(self._count.sum())
+
+    def time_range_us(self) -> tuple[int, int]:
+        if len(self._first) == 0:
+            return (0, 0)
+        return int(self._first[0]), int(self._last[-1])
+
+    def events(self, start_us: float | None = None, end_us: float | None = None) -> EventStream:
+        lo = -np.inf if start_us is None else start_us
+        hi = np.inf if end_us is None else end_us
+        if self._cache is not None:
+            return self._cache.slice(lo, hi)
+        sel = np.flatnonzero((self._last >= lo) & (self._first < hi))
+        if len(sel) == 0:
+            return EventStream.empty(self.width, self.height)
+        return self._window(self._fetch(int(sel[0]), int(sel[-1])), lo, hi)
+
+    def _fetch(self, k0: int, k1: int) -> list[Chunk]:
+        """The chunks at index positions k0..k1, decoding as little as possible.
+
+        The decoder of the previous request stays open, positioned after it, and the chunks it
+        returned (plus one read ahead) are kept: requests that move forward through the file
+        (one window after another) decode each chunk once in total, whether or not the format
+        can seek. Memory: the chunks of one request plus one.
+        """
+        w0, w1 = int(self._ordinal[k0]), int(self._ordinal[k1])
+        recent = self._recent
+        if recent and recent[0].ordinal <= w0 <= recent[-1].ordinal:
+            keep = [c for c in recent if c.ordinal >= w0]
+            start = recent[-1].ordinal + 1
+        else:
+            keep, start = [], w0
+        if start <= w1:
+            seekable = self._resume[k0] is not None
+            if self._live is None or self._live_next > start or (
+                    seekable and not keep and self._live_next < start):
+                # (re)start at the first wanted chunk: seekable formats jump straight there
+                self._close_live()
+                keep, start = [], w0
+                self._live = self._decode(w0, self._resume[k0])
+                self._live_next = w0
+            while True:
+                ch = next(self._live, None)
+                if ch is None:
+                    self._close_live()
+                    break
+                self._live_next = ch.ordinal + 1
+                if ch.ordinal < start or len(ch.t) == 0:
+                    continue
+                keep.append(ch)
+                if ch.ordinal > w1:
+                    break
+        self._recent = keep
+        return [c for c in keep if c.ordinal <= w1]
+
+    def _close_live(self) -> None:
+        if self._live is not None:
+            self._live.close()  # type: ignore[attr-defined]
+        self._live = None
+        self._live_next = 0
+
+    def close(self) -> None:
+        self._close_live()
+        self._recent = []
+
+    def iter_chunks(self, max_events: int = 1 << 22) -> Iterator[EventStream]:
+        """All events in time order, in pieces of at most ``max_events`` (one decoded chunk at a
+        time in memory)."""
+        step = max(int(max_events), 1)
+        if self._cache is not None:
+            for i in range(0, len(self._cache), step):
+                yield self._cache.take(slice(i, i + step))
+            return
+        source = self._decode(0)
+        try:
+            for ch in source:
+                for i in range(0, len(ch.t), step):
+                    s = slice(i, i + step)
+                    yield EventStream(ch.x[s], ch.y[s], ch.t[s], ch.p[s], self.width,
+                                      self.height)
+        finally:
+            source.close()  # type: ignore[attr-defined]

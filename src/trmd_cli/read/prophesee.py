@@ -1,0 +1,418 @@
+"""Prophesee recordings: EVT 2.0 ``.raw``, EVT 3.0 ``.raw`` and ``.dat`` (CD events).
+
+Units and conventions (all three formats):
+
+* time: microseconds on the camera's clock, kept as they are (a Metavision recording usually
+  starts some seconds after the camera did; nothing is subtracted);
+* x = column, y = row, (0, 0) at the top-left; polarity 1 = ON (+1), 0 = OFF (-1);
+* sensor size from the header (``% geometry 1280x720``, ``% format EVT3;height=720;width=1280``,
+  or ``% Width``/``% Height`` in .dat); else from the sensor named by ``% plugin_name`` (Gen3 →
+  640x480, Gen4/IMX636 → 1280x720, GenX320 → 320x320); else ``--sensor``; else max+1 (warned).
+
+Prophesee cameras record no intensity frames. Deblurring their events needs frames from a second
+camera whose clock is aligned with the event camera's (hardware trigger or a measured offset):
+give the frames as a folder with ``Exposure_start.txt``/``Exposure_end.txt``, or one window with
+``--exposure`` (see :mod:`trmd_cli.read.folders`).
+
+Decoders:
+
+* EVT 2.0 — decoded here with numpy (32-bit words: type in bits 31–28; CD_OFF 0x0 / CD_ON 0x1
+  carry the 6 low time bits, x (11 bits) and y (11 bits); EVT_TIME_HIGH 0x8 carries time bits
+  33–6; EXT_TRIGGER 0xA, OTHERS 0xE and CONTINUED 0xF are skipped). Chunks can be decoded in any
+  order, so windows of a large file are read without decoding the rest.
+* .dat — decoded here with numpy (after the ``%`` header, one byte event type, one byte event
+  size = 8, then records of uint32 time µs and uint32 with x in bits 0–13, y in bits 14–27,
+  polarity in bits 28–31). The 32-bit time wraps after 71.6 min and is unwrapped.
+* EVT 3.0 — decoded with the ``evt3`` package (not expelliarmus: it doubles EVT 3.0 times).
+
+Both numpy decoders agree event for event with expelliarmus on the shared recordings (tests).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import FormatError
+from .base import ReadOptions
+from .chunked import Chunk, ChunkedRecording
+
+__all__ = [
+    "read_evt2",
+    "read_evt3",
+    "read_dat",
+    "PropheseeHeader",
+    "parse_header",
+    "decode_evt2_words",
+    "decode_dat_records",
+    "EVT2_CHUNK_WORDS",
+    "DAT_CHUNK_EVENTS",
+]
+
+#: 32-bit words per EVT 2.0 chunk (4 MiB)
+EVT2_CHUNK_WORDS = 1 << 20
+#: records per .dat chunk (8 MiB)
+DAT_CHUNK_EVENTS = 1 << 20
+#: bytes of EVT 3.0 fed to the evt3 decoder per chunk
+EVT3_CHUNK_BYTES = 4 << 20
+
+#: sensor sizes by the name fragments found in ``% plugin_name`` / ``% sensor_generation``
+_KNOWN_SENSORS = (("genx320", (320, 320)), ("imx636", (1280, 720)), ("gen41", (1280, 720)),
+                  ("gen4", (1280, 720)), ("gen31", (640, 480)), ("gen3", (640, 480)))
+
+_EVT2_TYPES = (0x0, 0x1, 0x8, 0xA, 0xE, 0xF)
+_EVT2_VALID = np.zeros(16, bool)
+_EVT2_VALID[list(_EVT2_TYPES)] = True
+
+
+@dataclass(frozen=True)
+class PropheseeHeader:
+    """The ``%`` header of a .raw/.dat file.
+
+    Attributes:
+        fields: lower-cased first word of each line → the rest of the line.
+        data_offset: byte offset where binary data starts.
+        width, height: sensor size if the header states it, else None.
+        encoding: ``"evt2"``, ``"evt21"``, ``"evt3"`` or None when the header does not say.
+        sensor_hint: sensor size inferred from the plugin / sensor generation name, or None.
+    """
+
+    fields: dict[str, str] = field(default_factory=dict)
+    data_offset: int = 0
+    width: int | None = None
+    height: int | None = None
+    encoding: str | None = None
+    sensor_hint: tuple[int, int] | None = None
+
+
+def parse_header(head: bytes) -> PropheseeHeader:
+    """Parse the ``%`` lines at the start of ``head`` (the first bytes of the file).
+
+    A line counts as header only if it is printable text ending in a newline: binary data that
+    happens to start with ``%`` (0x25) is not swallowed. ``% end`` closes the header.
+    """
+    fields: dict[str, str] = {}
+    pos = 0
+    while head.startswith(b"%", pos):
+        nl = head.find(b"\n", pos, pos + 4096)
+        if nl < 0:
+            break
+        line = head[pos:nl].rstrip(b"\r")
+        if any(c < 0x20 and c != 0x09 for c in line) or b"\x7f" in line:
+            break
+        text = line[1:].decode("latin-1").strip()
+        pos = nl + 1
+        if text.lower() == "end":
+            break
+        key, _, value = text.partition(" ")
+        if key:
+            fields[key.lower()] = value.strip()
+    width = height = None
+    encoding = None
+    if "geometry" in fields:
+        m = re.match(r"\s*(\d+)\s*x\s*(\d+)", fields["geometry"])
+        if m:
+            width, height = int(m[1]), int(m[2])
+    if "format" in fields:
+        parts = fields["format"].split(";")
+        name = parts[0].strip().lower()
+        if re.fullmatch(r"evt\d+", name):
+            encoding = name
+        opts = dict(p.split("=", 1) for p in parts[1:] if "=" in p)
+        if "width" in opts and "height" in opts:
+            width, height = int(opts["width"]), int(opts["height"])
+    if width is None and "width" in fields and "height" in fields:
+        try:
+            width, height = int(fields["width"]), int(fields["height"])
+        except ValueError:
+            pass
+    if encoding is None and "evt" in fields:
+        encoding = {"3.0": "evt3", "2.0": "evt2", "2.1": "evt21"}.get(fields["evt"].strip())
+    hint = None
+    name = (fields.get("plugin_name", "") + " " + fields.get("sensor_generation", "")).lower()
+    for fragment, size in _KNOWN_SENSORS:
+        if fragment in name.replace(".", ""):
+            hint = size
+            break
+    return PropheseeHeader(fields, pos, width, height, encoding, hint)
+
+
+def _read_header(path: Path) -> PropheseeHeader:
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 16)
+    return parse_header(head)
+
+
+def _sensor(header: PropheseeHeader, options: ReadOptions,
+            warnings: list[str]) -> tuple[int | None, int | None]:
+    if header.width and header.height:
+        if options.sensor and tuple(options.sensor) != (header.width, header.height):
+            warnings.append(f"--sensor {options.sensor[0]}x{options.sensor[1]} ignored: the "
+                            f"file says {header.width}x{header.height}")
+        return header.width, header.height
+    if options.sensor:
+        return options.sensor
+    if header.sensor_hint:
+        w, h = header.sensor_hint
+        warnings.append(f"the header states no sensor size; using {w}x{h} for the "
+                        f"{header.fields.get('plugin_name', 'named sensor')} (pass --sensor "
+                        "WxH to override)")
+        return w, h
+    return None, None
+
+
+def _ignore_time_unit(options: ReadOptions, fmt: str, warnings: list[str]) -> None:
+    if options.time_unit not in (None, "us"):
+        warnings.append(f"--time-unit {options.time_unit} ignored: {fmt} times are "
+                        "microseconds by specification")
+
+
+def _whole_records(path: Path, offset: int, size: int, what: str) -> int:
+    """Number of whole records after ``offset``; a partial last record means truncation."""
+    total = os.path.getsize(path)
+    if total < offset:
+        raise FormatError("the file ends inside its header (truncated?)", path=path)
+    n, rest = divmod(total - offset, size)
+    if rest:
+        raise FormatError(
+            f"the file ends with {rest} byte(s) of a partial {what} (truncated?)", path=path,
+            hint=f"if the recording was interrupted, keep its complete part: "
+                 f"truncate -s {total - rest} FILE (on a copy)")
+    return n
+
+
+# -- EVT 2.0 ---------------------------------------------------------------------------------
+
+
+def decode_evt2_words(words: np.ndarray, state: tuple[int, int, int] = (-1, 0, -1),
+                      *, path: Path | None = None, first_word: int = 0):
+    """Decode EVT 2.0 words (uint32) into CD events.
+
+    Args:
+        words: (W,) uint32 little-endian words.
+        state: ``(last_raw_time_high, wraps, time_high)`` carried from the previous chunk;
+            ``time_high`` is the unwrapped time-high (units of 64 µs), -1 before the first one.
+        first_word: index of ``words[0]`` in the file, for error messages.
+    Returns:
+        ``(x, y, t, p, state_after, dropped)``: uint16, uint16, int64 µs, int8 ±1 arrays, the
+        state for the next chunk, and the number of CD events dropped because no time-high word
+        preceded them.
+    Raises:
+        FormatError: a word of a type EVT 2.0 does not define.
+    """
+    w = np.asarray(words, np.uint32)
+    typ = (w >> 28).astype(np.uint8)
+    bad = ~_EVT2_VALID[typ]
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise FormatError(f"word {first_word + i} has type 0x{typ[i]:X}, which EVT 2.0 does "
+                          "not define (corrupt file, or not EVT 2.0?)", path=path)
+    last_raw, wraps, time_high = state
+    is_th = typ == 0x8
+    th_raw = (w[is_th] & 0x0FFFFFFF).astype(np.int64)
+    if len(th_raw):
+        prev = np.concatenate([[last_raw if last_raw >= 0 else th_raw[0]], th_raw])
+        # the 28-bit time-high wraps every 4.77 h: count the big backward steps
+        wrap = wraps + np.cumsum(np.diff(prev) < -(1 << 27))
+        th = th_raw + (wrap << 28)
+        state_after = (int(th_raw[-1]), int(wrap[-1]), int(th[-1]))
+    else:
+        th = th_raw
+        state_after = state
+    is_cd = typ <= 0x1
+    # for each CD word, the number of time-high words before it indexes [time_high, *th]
+    which = np.cumsum(is_th, dtype=np.int32 if len(w) < 2**31 else np.int64)[is_cd]
+    highs = np.concatenate([[time_high], th])[which]
+    cd = w[is_cd]
+    keep = highs >= 0
+    dropped = int(len(cd) - keep.sum())
+    if dropped:
+        cd, highs = cd[keep], highs[keep]
+    t = highs << 6
+    t |= (cd >> 22) & 0x3F
+    x = ((cd >> 11) & 0x7FF).astype(np.uint16)
+    y = (cd & 0x7FF).astype(np.uint16)
+    p = (cd >> 28).astype(np.int8)
+    p *= 2
+    p -= 1
+    return x, y, t, p, state_after, dropped
+
+
+class Evt2Recording(ChunkedRecording):
+    """An EVT 2.0 .raw file, decoded in chunks of :data:`EVT2_CHUNK_WORDS` words."""
+
+    def __init__(self, path: Path, options: ReadOptions, chunk_words: int = EVT2_CHUNK_WORDS):
+        header = _read_header(path)
+        if header.encoding not in (None, "evt2"):
+            raise FormatError(f"the header says {header.encoding}, not EVT 2.0", path=path)
+        warnings: list[str] = []
+        _ignore_time_unit(options, "EVT 2.0", warnings)
+        width, height = _sensor(header, options, warnings)
+        super().__init__(path, "evt2", width, height, warnings)
+        self.header = header
+        self._chunk_words = int(chunk_words)
+        self._num_words = _whole_records(path, header.data_offset, 4, "32-bit word")
+        self._dropped = 0
+        self._counting = True
+        self._build_index()
+        self._counting = False
+        if self._dropped:
+            self.warnings.append(f"{self._dropped} event(s) before the first time-high word "
+                                 "were dropped (their time is unknown)")
+
+    def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
+        state = (-1, 0, -1) if resume is None else resume
+        k = start
+        with open(self.path, "rb") as fh:
+            fh.seek(self.header.data_offset + 4 * k * self._chunk_words)
+            while k * self._chunk_words < self._num_words:
+                words = np.fromfile(fh, "<u4", self._chunk_words)
+                x, y, t, p, after, dropped = decode_evt2_words(
+                    words, state, path=self.path, first_word=k * self._chunk_words)
+                if self._counting:
+                    self._dropped += dropped
+                yield Chunk(k, x, y, t, p, resume=state)
+                state = after
+                k += 1
+
+
+def read_evt2(path: Path, options: ReadOptions) -> Evt2Recording:
+    """Open a Prophesee EVT 2.0 .raw file (events indexed on open, decoded per window)."""
+    return Evt2Recording(Path(path), options)
+
+
+# -- .dat ------------------------------------------------------------------------------------
+
+_DAT_DTYPE = np.dtype([("t", "<u4"), ("d", "<u4")])
+
+
+def decode_dat_records(records: np.ndarray, state: tuple[int, int] = (-1, 0), *,
+                       path: Path | None = None, first_record: int = 0):
+    """Decode .dat CD records (structured ``t``/``d`` uint32).
+
+    Args:
+        state: ``(last_raw_time, wraps)`` carried from the previous chunk (-1 at the start).
+    Returns:
+        ``(x, y, t, p, state_after)`` with t unwrapped to int64 µs.
+    Raises:
+        FormatError: a polarity other than 0/1.
+    """
+    raw_t = records["t"].astype(np.int64)
+    d = records["d"]
+    last_raw, wraps = state
+    if len(raw_t):
+        prev = np.concatenate([[last_raw if last_raw >= 0 else raw_t[0]], raw_t])
+        # uint32 µs wraps every 71.6 min: a big backward step is a wrap, a small one corruption
+        wrap = wraps + np.cumsum(np.diff(prev) < -(1 << 31))
+        t = raw_t + (wrap << 32)
+        state_after = (int(raw_t[-1]), int(wrap[-1]))
+    else:
+        t, state_after = raw_t, state
+    pol = d >> 28
+    if len(pol) and pol.max() > 1:
+        i = int(np.flatnonzero(pol > 1)[0])
+        raise FormatError(f"record {first_record + i} has polarity {int(pol[i])}, expected 0 "
+                          "or 1 (corrupt file?)", path=path)
+    x = (d & 0x3FFF).astype(np.uint16)
+    y = ((d >> 14) & 0x3FFF).astype(np.uint16)
+    p = (pol.astype(np.int8) * 2 - 1).astype(np.int8)
+    return x, y, t, p, state_after
+
+
+class DatRecording(ChunkedRecording):
+    """A Prophesee .dat file of CD events, decoded in chunks of :data:`DAT_CHUNK_EVENTS`."""
+
+    def __init__(self, path: Path, options: ReadOptions, chunk_events: int = DAT_CHUNK_EVENTS):
+        header = _read_header(path)
+        warnings: list[str] = []
+        _ignore_time_unit(options, ".dat", warnings)
+        width, height = _sensor(header, options, warnings)
+        super().__init__(path, "dat", width, height, warnings)
+        self.header = header
+        with open(path, "rb") as fh:
+            fh.seek(header.data_offset)
+            kind = fh.read(2)
+        if len(kind) < 2:
+            raise FormatError("the file has a header but no event type/size bytes (truncated?)",
+                              path=path)
+        ev_type, ev_size = kind[0], kind[1]
+        if ev_size != 8:
+            raise FormatError(f"event size {ev_size} bytes, expected 8 (corrupt, or not a CD "
+                              ".dat file?)", path=path)
+        if ev_type not in (0x00, 0x0C):
+            raise FormatError(f"event type 0x{ev_type:02X} is not CD events (0x0C)", path=path,
+                              hint="only .dat files of CD (change detection) events are read")
+        self._data_offset = header.data_offset + 2
+        self._chunk = int(chunk_events)
+        self._num_records = _whole_records(path, self._data_offset, 8, "8-byte event record")
+        self._build_index()
+
+    def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
+        state = (-1, 0) if resume is None else resume
+        k = start
+        with open(self.path, "rb") as fh:
+            fh.seek(self._data_offset + 8 * k * self._chunk)
+            while k * self._chunk < self._num_records:
+                rec = np.fromfile(fh, _DAT_DTYPE, self._chunk)
+                x, y, t, p, after = decode_dat_records(rec, state, path=self.path,
+                                                       first_record=k * self._chunk)
+                yield Chunk(k, x, y, t, p, resume=state)
+                state = after
+                k += 1
+
+
+def read_dat(path: Path, options: ReadOptions) -> DatRecording:
+    """Open a Prophesee .dat file of CD events (indexed on open, decoded per window)."""
+    return DatRecording(Path(path), options)
+
+
+# -- EVT 3.0 ---------------------------------------------------------------------------------
+
+
+class Evt3Recording(ChunkedRecording):
+    """An EVT 3.0 .raw file, decoded by the ``evt3`` package in bounded batches.
+
+    EVT 3.0 keeps decoder state across the whole stream, so a window is reached by decoding from
+    the start (skipping what comes before); files up to the cache size are decoded once.
+    """
+
+    def __init__(self, path: Path, options: ReadOptions, batch_bytes: int = EVT3_CHUNK_BYTES):
+        from . import require
+
+        self._evt3 = require("evt3", path=path)
+        header = _read_header(path)
+        if header.encoding not in (None, "evt3"):
+            raise FormatError(f"the header says {header.encoding}, not EVT 3.0", path=path)
+        warnings: list[str] = []
+        _ignore_time_unit(options, "EVT 3.0", warnings)
+        width, height = _sensor(header, options, warnings)
+        super().__init__(path, "evt3", width, height, warnings)
+        self.header = header
+        self._batch_bytes = int(batch_bytes)
+        _whole_records(path, header.data_offset, 2, "16-bit word")
+        self._build_index()
+
+    def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
+        try:
+            batches = self._evt3.decode_file_batches(str(self.path), batch_bytes=self._batch_bytes)
+            for k, ev in enumerate(batches):
+                if k < start:
+                    continue
+                t = np.asarray(ev.t)
+                # times are far below 2**63: reinterpret instead of copying
+                t = t.view(np.int64) if t.dtype == np.uint64 else t.astype(np.int64)
+                yield Chunk(k, np.asarray(ev.x, np.uint16), np.asarray(ev.y, np.uint16), t,
+                            (np.asarray(ev.p).astype(np.int8) * 2 - 1).astype(np.int8))
+        except (OSError, ValueError, RuntimeError) as e:
+            raise FormatError(f"EVT 3.0 decoding failed: {e}", path=self.path) from None
+
+
+def read_evt3(path: Path, options: ReadOptions) -> Evt3Recording:
+    """Open a Prophesee EVT 3.0 .raw file (decoded with the ``evt3`` package)."""
+    return Evt3Recording(Path(path), options)
