@@ -275,13 +275,13 @@ def write_h5(path: str | Path, stream, *, blurry=None, exposures=None, sharp=Non
     return Path(path)
 
 
-def write_events_npz(path: str | Path, stream, exposures=None) -> Path:
+def write_events_npz(path: str | Path, stream, exposures=None, compress: bool = False) -> Path:
     """Events as ``x, y, t (int64 µs), p (int8), width, height`` [+ exposure_start/end]."""
     extra = {}
     if exposures:
         extra = {"exposure_start": np.array([e.start_us for e in exposures], np.int64),
                  "exposure_end": np.array([e.end_us for e in exposures], np.int64)}
-    return write_npz(path, x=stream.x, y=stream.y, t=stream.t, p=stream.p,
+    return write_npz(path, compress, x=stream.x, y=stream.y, t=stream.t, p=stream.p,
                      width=np.int64(stream.width), height=np.int64(stream.height), **extra)
 
 
