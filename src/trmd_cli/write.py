@@ -29,6 +29,15 @@ __all__ = [
 ]
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _umask()
+
+
 def check_output(path: str | Path, overwrite: bool) -> Path:
     """Refuse an output that exists and is not an empty folder, unless ``overwrite``."""
     path = Path(path)
@@ -54,6 +63,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{suffix}", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
+    os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs should look ordinary
     try:
         yield tmp_path
         os.replace(tmp_path, path)
