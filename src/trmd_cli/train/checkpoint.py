@@ -1,0 +1,178 @@
+"""Resumable checkpoints: one safetensors file, written atomically, no pickle anywhere.
+
+Tensors (model weights in full precision, optimiser moments, RNG state bytes) are safetensors
+entries; everything else (step, epoch, sampler position, log history, recipe, optimiser
+hyper-parameters, Python/NumPy RNG states, AMP scaler) is one JSON document stored in the
+safetensors header metadata under ``"trmd_checkpoint"``. Keeping both in one file makes the
+checkpoint atomic as a whole — a run killed while saving leaves the previous checkpoint intact,
+never a tensor file from one step beside a sidecar from another — and loading never unpickles.
+
+Entry names: ``model/<state-dict key>``, ``optim/<param index>/<state key>``, ``rng/torch``,
+``rng/numpy``, ``rng/cuda/<device>``.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import FormatError
+from ..write import atomic_path
+
+__all__ = ["save_checkpoint", "load_checkpoint", "read_checkpoint_state", "capture_rng",
+           "restore_rng", "CHECKPOINT_FORMAT", "META_KEY"]
+
+CHECKPOINT_FORMAT = 1
+META_KEY = "trmd_checkpoint"
+
+
+def capture_rng() -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """Python, NumPy (global) and torch RNG states as (JSON-able dict, tensors)."""
+    py = random.getstate()
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    js = {"python": [py[0], list(py[1]), py[2]],
+          "numpy": [kind, int(pos), int(has_gauss), float(cached)]}
+    tensors = {"rng/torch": torch.get_rng_state(),
+               "rng/numpy": torch.from_numpy(np.asarray(keys, np.int64))}
+    if torch.cuda.is_available():
+        for i, s in enumerate(torch.cuda.get_rng_state_all()):
+            tensors[f"rng/cuda/{i}"] = s
+    return js, tensors
+
+
+def restore_rng(js: dict[str, Any], tensors: dict[str, torch.Tensor]) -> None:
+    """Inverse of :func:`capture_rng`."""
+    version, state, gauss = js["python"]
+    random.setstate((version, tuple(state), gauss))
+    kind, pos, has_gauss, cached = js["numpy"]
+    np.random.set_state((kind, tensors["rng/numpy"].numpy().astype(np.uint32), pos, has_gauss,
+                         cached))
+    torch.set_rng_state(tensors["rng/torch"])
+    if torch.cuda.is_available():
+        states = [tensors[k] for k in sorted(tensors) if k.startswith("rng/cuda/")]
+        if len(states) == torch.cuda.device_count():
+            torch.cuda.set_rng_state_all(states)
+
+
+def _optimizer_split(optimizer: torch.optim.Optimizer
+                     ) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    sd = optimizer.state_dict()
+    tensors: dict[str, torch.Tensor] = {}
+    plain: dict[str, dict[str, Any]] = {}
+    for idx, st in sd["state"].items():
+        plain[str(idx)] = {}
+        for key, value in st.items():
+            if torch.is_tensor(value):
+                tensors[f"optim/{idx}/{key}"] = value
+            else:
+                plain[str(idx)][key] = value
+    groups = [{k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items()}
+              for g in sd["param_groups"]]
+    return {"param_groups": groups, "state": plain}, tensors
+
+
+def _optimizer_join(js: dict[str, Any], tensors: dict[str, torch.Tensor]) -> dict[str, Any]:
+    state: dict[int, dict[str, Any]] = {int(i): dict(v) for i, v in js["state"].items()}
+    for name, value in tensors.items():
+        if name.startswith("optim/"):
+            _, idx, key = name.split("/", 2)
+            state.setdefault(int(idx), {})[key] = value
+    groups = [{k: (tuple(v) if k == "betas" else v) for k, v in g.items()}
+              for g in js["param_groups"]]
+    return {"state": state, "param_groups": groups}
+
+
+def save_checkpoint(path: str | Path, *, model: torch.nn.Module,
+                    optimizer: torch.optim.Optimizer, state: dict[str, Any],
+                    scaler: Any = None) -> Path:
+    """Write model + optimiser + RNG + ``state`` (JSON-able) to ``path`` atomically.
+
+    ``model`` is the bare module (not a DDP wrapper). Weights are saved in float32 whatever
+    the training precision, so resuming is exact.
+    """
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    tensors: dict[str, torch.Tensor] = {}
+    for key, value in model.state_dict().items():
+        tensors[f"model/{key}"] = value
+    optim_js, optim_t = _optimizer_split(optimizer)
+    tensors.update(optim_t)
+    rng_js, rng_t = capture_rng()
+    tensors.update(rng_t)
+    # safetensors refuses views and shared storage: give it plain CPU copies
+    tensors = {k: v.detach().to("cpu", copy=True).contiguous() for k, v in tensors.items()}
+    doc = {"format": CHECKPOINT_FORMAT, **state, "optimizer": optim_js, "rng": rng_js,
+           "scaler": None if scaler is None else scaler.state_dict()}
+    meta = {META_KEY: json.dumps(doc, default=_json_default)}
+    with atomic_path(path, suffix=".safetensors") as tmp:
+        save_file(tensors, str(tmp), metadata=meta)
+    return path
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if torch.is_tensor(o) and o.numel() == 1:
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable in a checkpoint: {type(o)}")
+
+
+def read_checkpoint_state(path: str | Path) -> dict[str, Any]:
+    """The JSON part of a checkpoint (step, recipe, history …) without loading tensors."""
+    from safetensors import safe_open
+
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError("no checkpoint to resume from", path=path,
+                          hint="start without --resume, or point --out at the run folder")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+    except Exception as e:  # noqa: BLE001 - any parse failure means the same to the user
+        raise FormatError(f"not a readable checkpoint ({type(e).__name__}: {e})",
+                          path=path) from None
+    if META_KEY not in meta:
+        raise FormatError("safetensors file is not a trmd training checkpoint", path=path,
+                          hint="--init-weights takes weight files; --resume needs a run folder")
+    doc = json.loads(meta[META_KEY])
+    if doc.get("format") != CHECKPOINT_FORMAT:
+        raise FormatError(f"checkpoint format {doc.get('format')} is not supported "
+                          f"(this version reads {CHECKPOINT_FORMAT})", path=path)
+    return doc
+
+
+def load_checkpoint(path: str | Path, *, model: torch.nn.Module,
+                    optimizer: torch.optim.Optimizer, scaler: Any = None,
+                    restore_random: bool = True) -> dict[str, Any]:
+    """Restore model, optimiser, RNG and scaler in place; return the JSON state.
+
+    Raises:
+        FormatError: not a checkpoint, or its tensors do not fit ``model``.
+    """
+    from safetensors.torch import load_file
+
+    doc = read_checkpoint_state(path)
+    tensors = load_file(str(path), device="cpu")
+    weights = {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
+    try:
+        model.load_state_dict(weights, strict=True)
+        optimizer.load_state_dict(_optimizer_join(doc["optimizer"], tensors))
+    except (RuntimeError, ValueError, KeyError) as e:
+        raise FormatError(f"checkpoint does not fit this model/optimiser: "
+                          f"{str(e).splitlines()[0]}", path=path,
+                          hint="resume with the recipe the run was started with") from None
+    if scaler is not None and doc.get("scaler"):
+        scaler.load_state_dict(doc["scaler"])
+    if restore_random:
+        restore_rng(doc["rng"], tensors)
+    return doc

@@ -1,0 +1,163 @@
+"""Checkpoints (safetensors + JSON metadata, atomic, no pickle) and the training-curve PNG."""
+
+from __future__ import annotations
+
+import json
+import random
+import struct
+
+import numpy as np
+import pytest
+import torch
+
+from trmd_cli.errors import FormatError
+from trmd_cli.models import create_model
+from trmd_cli.train.checkpoint import (
+    load_checkpoint,
+    read_checkpoint_state,
+    save_checkpoint,
+)
+from trmd_cli.train.plots import COLORS, draw_curve, log_ticks, nice_ticks, write_curve
+
+
+def trained_pair(steps: int = 2):
+    torch.manual_seed(0)
+    model = create_model("test_trmd")
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2, foreach=False)
+    g = torch.Generator().manual_seed(1)
+    data = [(torch.rand(2, 1, 16, 16, generator=g), torch.randn(2, 6, 16, 16, generator=g))
+            for _ in range(steps + 1)]
+    for b, v in data[:steps]:
+        opt.zero_grad()
+        model(b, v).square().mean().backward()
+        opt.step()
+    return model, opt, data[steps]
+
+
+def one_step(model, opt, batch):
+    opt.zero_grad()
+    model(*batch).square().mean().backward()
+    opt.step()
+
+
+def test_round_trip_restores_model_optimiser_rng_and_state(tmp_path):
+    model, opt, nxt = trained_pair()
+    random.seed(11)
+    np.random.seed(12)
+    torch.manual_seed(13)
+    path = save_checkpoint(tmp_path / "ck.safetensors", model=model, optimizer=opt,
+                           state={"step": 2, "history": [{"step": 2, "loss": 0.5}]})
+    expected_draws = (random.random(), float(np.random.rand()), float(torch.rand(())))
+
+    torch.manual_seed(99)  # a different init and RNG state
+    model2 = create_model("test_trmd")
+    opt2 = torch.optim.Adam(model2.parameters(), lr=1e-2, foreach=False)
+    doc = load_checkpoint(path, model=model2, optimizer=opt2)
+    assert doc["step"] == 2 and doc["history"] == [{"step": 2, "loss": 0.5}]
+    assert (random.random(), float(np.random.rand()), float(torch.rand(()))) == expected_draws
+    for (k, a), b in zip(model.state_dict().items(), model2.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k
+    # the next step is identical: the optimiser moments and step counts came back
+    one_step(model, opt, nxt)
+    one_step(model2, opt2, nxt)
+    for a, b in zip(model.parameters(), model2.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_checkpoint_is_safetensors_with_json_metadata(tmp_path):
+    model, opt, _ = trained_pair(1)
+    path = save_checkpoint(tmp_path / "ck.safetensors", model=model, optimizer=opt,
+                           state={"step": 1})
+    raw = path.read_bytes()
+    (header_len,) = struct.unpack("<Q", raw[:8])
+    header = json.loads(raw[8:8 + header_len])
+    assert "model/head.weight" in header and "rng/torch" in header
+    assert any(k.startswith("optim/") for k in header)
+    meta = json.loads(header["__metadata__"]["trmd_checkpoint"])
+    assert meta["step"] == 1 and meta["format"] == 1
+    assert read_checkpoint_state(path)["step"] == 1
+
+
+def test_a_failed_save_leaves_the_previous_checkpoint(tmp_path, monkeypatch):
+    model, opt, _ = trained_pair(1)
+    path = save_checkpoint(tmp_path / "ck.safetensors", model=model, optimizer=opt,
+                           state={"step": 1})
+    before = path.read_bytes()
+
+    def boom(*a, **k):
+        raise KeyboardInterrupt  # as if interrupted while writing
+
+    monkeypatch.setattr("safetensors.torch.save_file", boom)
+    with pytest.raises(KeyboardInterrupt):
+        save_checkpoint(path, model=model, optimizer=opt, state={"step": 2})
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ck.safetensors"]
+
+
+def test_unreadable_or_foreign_files_are_refused(tmp_path):
+    from safetensors.torch import save_file
+
+    with pytest.raises(FormatError, match="no checkpoint"):
+        read_checkpoint_state(tmp_path / "none.safetensors")
+    (tmp_path / "junk.safetensors").write_bytes(b"\x80\x04junk")
+    with pytest.raises(FormatError, match="not a readable checkpoint"):
+        read_checkpoint_state(tmp_path / "junk.safetensors")
+    save_file({"w": torch.zeros(2)}, str(tmp_path / "weights.safetensors"))
+    with pytest.raises(FormatError, match="not a trmd training checkpoint"):
+        read_checkpoint_state(tmp_path / "weights.safetensors")
+
+
+def test_checkpoint_of_another_architecture_is_refused(tmp_path):
+    model, opt, _ = trained_pair(1)
+    path = save_checkpoint(tmp_path / "ck.safetensors", model=model, optimizer=opt,
+                           state={"step": 1})
+    other = create_model("test_trmd", feat_width=6)
+    with pytest.raises(FormatError, match="does not fit"):
+        load_checkpoint(path, model=other,
+                        optimizer=torch.optim.Adam(other.parameters(), foreach=False))
+
+
+# --------------------------------------------------------------------------------------------
+# Curve
+
+
+def test_nice_ticks():
+    assert nice_ticks(0, 10, 5) == [0, 2, 4, 6, 8, 10]
+    assert nice_ticks(0.3, 0.9, 5) == pytest.approx([0.4, 0.6, 0.8])
+    assert nice_ticks(5, 5) == [5]
+    assert log_ticks(0.003, 0.06) == pytest.approx([0.005, 0.01, 0.02, 0.05])
+    assert log_ticks(1e-4, 10) == pytest.approx([1e-4, 1e-3, 1e-2, 0.1, 1, 10])
+
+
+def _mask(img: np.ndarray, colour) -> np.ndarray:
+    return np.all(np.abs(img.astype(int) - np.array(colour)) <= 30, axis=2)
+
+
+def test_curve_draws_falling_loss_and_rising_psnr():
+    history = [{"step": s, "loss": 1.0 / s, "val_psnr_mid": None, "val_psnr_seq": None}
+               for s in range(10, 1010, 10)]
+    for s, row in zip(range(10, 1010, 10), history, strict=True):
+        if s % 200 == 0:
+            row.update(val_psnr_mid=20 + s / 100, val_psnr_seq=19 + s / 100)
+    img = draw_curve(history, width=900, height=640)
+    assert img.shape == (640, 900, 3) and img.dtype == np.uint8
+    top, bottom = img[:320], img[320:]
+    loss = _mask(top, COLORS["loss"])
+    ys, xs = np.nonzero(loss[:, 80:700])  # leave the legend out
+    # the line starts high on the left and ends low on the right
+    left, right = ys[xs < 40], ys[xs > 580]
+    assert left.size and right.size and left.mean() < right.mean() - 100
+    mid = _mask(bottom, COLORS["val_psnr_mid"])
+    ys, xs = np.nonzero(mid[:, 80:700])
+    left, right = ys[xs < 250], ys[xs > 500]
+    assert left.size and right.size and left.mean() > right.mean() + 50  # rising = going up
+    assert _mask(bottom, COLORS["val_psnr_seq"]).any()
+
+
+def test_curve_of_an_empty_log_and_the_png(tmp_path):
+    import cv2
+
+    assert draw_curve([]).shape == (640, 900, 3)
+    path = write_curve(tmp_path / "c.png", [{"step": 1, "loss": 0.2}, {"step": 2, "loss": 0.1}])
+    img = cv2.imread(str(path))
+    assert img is not None and img.shape == (640, 900, 3)
