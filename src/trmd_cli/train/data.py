@@ -225,9 +225,11 @@ class CropDataset(Dataset):
     """Crop every sample of ``base`` to ``crop``×``crop`` (random per seed/epoch/index or centred)
     and give it a ``contrast`` entry (NaN if missing). Samples already that small pass as is."""
 
-    def __init__(self, base: Dataset, crop: int, *, random_crop: bool, seed: int) -> None:
+    def __init__(self, base: Dataset, crop: int, *, random_crop: bool, seed: int,
+                 augment: bool = False) -> None:
         self.base, self.crop, self.random_crop, self.seed, self.epoch = (
             base, crop, random_crop, seed, 0)
+        self.augment = augment
 
     def __len__(self) -> int:
         return len(self.base)  # type: ignore[arg-type]
@@ -252,11 +254,38 @@ class CropDataset(Dataset):
             for key in ("blurry", "voxels", "sharp"):
                 if key in item:
                     item[key] = item[key][..., y:y + c, x:x + c].contiguous()
+        if self.augment:
+            item = augment_item(item, _rng(self.seed + 1, self.epoch, index))
         if "contrast" not in item:
             item["contrast"] = torch.tensor(float("nan"))
         else:
             item["contrast"] = torch.as_tensor(item["contrast"], dtype=torch.float32).reshape(())
         return item
+
+
+def augment_item(item: dict[str, torch.Tensor], g: np.random.Generator) -> dict[str, torch.Tensor]:
+    """Random flips, transpose (square crops) and time reversal of one sample.
+
+    All keep the physics exact. Reversing time maps latent frame k to 2N−k and flips every
+    event's polarity; with SCER's sign convention that is exactly V'(k) = V(2N−k), i.e. the
+    voxel channels reversed (no negation) — so pre-generated sets count 16× over.
+    """
+    item = dict(item)
+    keys = [k for k in ("blurry", "voxels", "sharp") if k in item]
+    hflip, vflip, transpose, reverse = (bool(b) for b in g.integers(0, 2, 4))
+    h, w = item["blurry"].shape[-2:]
+    for k in keys:
+        t = item[k]
+        if hflip:
+            t = t.flip(-1)
+        if vflip:
+            t = t.flip(-2)
+        if transpose and h == w:
+            t = t.transpose(-1, -2)
+        if reverse and k in ("voxels", "sharp"):
+            t = t.flip(0)
+        item[k] = t.contiguous()
+    return item
 
 
 def set_epoch(dataset: Any, epoch: int) -> None:
@@ -355,7 +384,7 @@ def _h5(kind: str, path: Path, recipe, *, crop: int, train: bool, seed: int) -> 
     from ..simulate.dataset import H5SampleDataset
 
     return CropDataset(H5SampleDataset(path, n=recipe.model.n), crop, random_crop=train,
-                       seed=seed)
+                       seed=seed, augment=train and recipe.data.augment)
 
 
 def _check_item(ds: Dataset, source: str, recipe, supervised: bool) -> None:

@@ -86,6 +86,7 @@ class DataSpec:
     val_samples: int = 64  # at most this many validation samples
     val_crop: int = 0  # centre crop of validation samples, 0 = whole frames
     simulator: dict[str, Any] = field(default_factory=dict)  # SimulatedDataset keywords
+    augment: bool = True  # flips, transpose, time reversal of pre-generated training samples
 
 
 @dataclass(frozen=True)
