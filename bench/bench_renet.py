@@ -5,10 +5,12 @@ Usage::
     python bench/bench_renet.py                      # all registered variants, 2 threads
     python bench/bench_renet.py --variants trmd_small --repeats 10 --threads 2
 
-Per variant: parameters, MACs (count_macs, at the padded 352×272 grid), median forward time of
-the network alone (torch.inference_mode, after warm-up). End to end (one variant): SCER voxels
-from ~300k synthetic events, TrmdEstimator call (numpy in → 2N+1 frames out, weights loaded from
-a safetensors file), and the two together. Figures depend on what else runs on the machine.
+Per variant: parameters, MACs (count_macs, at the padded 352×272 grid), median and minimum
+wall time of one forward pass of the network alone (torch.inference_mode, after warm-up), and
+the minimum process CPU time (summed over threads; with --threads 1 it hardly depends on other
+load). End to end (one variant): SCER voxels from ~300k synthetic events, the TrmdEstimator call
+(numpy in → 2N+1 frames out, weights loaded from a safetensors file), and the two together.
+Wall times depend on what else runs on the machine.
 """
 
 from __future__ import annotations
@@ -29,15 +31,17 @@ from trmd_cli.voxel import scer_voxels
 from trmd_cli.weights import save_weights
 
 
-def _median_time(fn, repeats: int, warmup: int) -> tuple[float, float]:
+def _median_time(fn, repeats: int, warmup: int) -> tuple[float, float, float]:
+    """Median and minimum wall time, and minimum process CPU time (all threads), in s."""
     for _ in range(warmup):
         fn()
-    times = []
+    times, cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
         times.append(time.perf_counter() - t0)
-    return statistics.median(times), min(times)
+        cpu.append(time.process_time() - c0)
+    return statistics.median(times), min(times), min(cpu)
 
 
 def _events(width: int, height: int, count: int, exposure: Exposure, seed: int = 0):
@@ -65,17 +69,18 @@ def main() -> None:
     h, w, n = args.height, args.width, args.n
     names = args.variants or list_models()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {w}x{h}, N={n}")
-    print(f"{'variant':12s} {'params':>9s} {'GMACs':>7s} {'median ms':>10s} {'min ms':>8s}")
+    print(f"{'variant':12s} {'params':>9s} {'GMACs':>7s} {'median ms':>10s} {'min ms':>8s} "
+          f"{'CPU ms':>8s}")
     g = torch.Generator().manual_seed(0)
     blurry = torch.rand(1, 1, h, w, generator=g)
     voxels = torch.randn(1, 2 * n, h, w, generator=g)
     for name in names:
         model = create_model(name, n=n).eval()
         with torch.inference_mode():
-            med, best = _median_time(lambda m=model: m(blurry, voxels), args.repeats,
-                                     args.warmup)
+            med, best, cpu = _median_time(lambda m=model: m(blurry, voxels), args.repeats,
+                                          args.warmup)
         print(f"{name:12s} {count_params(model) / 1e6:8.2f}M {count_macs(model, h, w) / 1e9:7.2f} "
-              f"{med * 1e3:10.1f} {best * 1e3:8.1f}", flush=True)
+              f"{med * 1e3:10.1f} {best * 1e3:8.1f} {cpu * 1e3:8.1f}", flush=True)
 
     exposure = Exposure(0, 20_000)
     stream = _events(w, h, 300_000, exposure)
@@ -86,13 +91,13 @@ def main() -> None:
         t0 = time.perf_counter()
         est = TrmdEstimator.load(path, device="cpu", threads=args.threads)
         load_s = time.perf_counter() - t0
-    vox_med, _ = _median_time(lambda: scer_voxels(stream, exposure, n), args.repeats, 1)
+    vox_med, *_ = _median_time(lambda: scer_voxels(stream, exposure, n), args.repeats, 1)
     vox = scer_voxels(stream, exposure, n)
-    est_med, _ = _median_time(lambda: est(frame, vox), args.repeats, args.warmup)
-    all_med, _ = _median_time(lambda: est(frame, scer_voxels(stream, exposure, n)),
+    est_med, *_ = _median_time(lambda: est(frame, vox), args.repeats, args.warmup)
+    all_med, *_ = _median_time(lambda: est(frame, scer_voxels(stream, exposure, n)),
                               args.repeats, 1)
     rgb = np.repeat(frame[..., None], 3, axis=2)
-    rgb_med, _ = _median_time(lambda: est(rgb, vox), max(args.repeats // 2, 1), 1)
+    rgb_med, *_ = _median_time(lambda: est(rgb, vox), max(args.repeats // 2, 1), 1)
     print(f"end to end ({args.end_to_end}, gray model): load {load_s * 1e3:.0f} ms, "
           f"voxels (300k events) {vox_med * 1e3:.1f} ms, estimator {est_med * 1e3:.1f} ms, "
           f"voxels + estimator {all_med * 1e3:.1f} ms, RGB frame (3 channels) "

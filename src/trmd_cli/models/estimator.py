@@ -1,0 +1,149 @@
+"""Inference wrapper: numpy frame + SCER voxels → 2N+1 latent frames with a trained RE-Net.
+
+Used by ``trmd deblur --method trmd`` and ``trmd hfr --method trmd``. The network predicts the
+residuals; :func:`trmd_cli.reconstruct.reconstruct` turns them into frames (Eq. 11–12), so the
+mean of the output equals the input frame exactly.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import InputError, ShapeError
+from ..reconstruct import reconstruct
+from ..weights import load_weights, resolve_device, weights_hash
+from .renet import RENet
+
+__all__ = ["TrmdEstimator"]
+
+
+class TrmdEstimator:
+    """A loaded RE-Net and the device it runs on.
+
+    Colour handling: a gray model (channels = 1) given an RGB frame runs once per colour channel
+    (as a batch of 3) with the same voxels — events carry no colour, and the residual of each
+    channel follows the same motion. An RGB model (channels = 3) given a gray frame sees it
+    replicated to three channels and returns the mean of its three outputs.
+
+    Example::
+
+        est = TrmdEstimator.load("best.safetensors", threads=2)
+        latent = est(blurry, scer_voxels(events, exposure, est.n))  # (2N+1, H, W)
+    """
+
+    def __init__(self, model: RENet, meta: dict[str, Any] | None = None,
+                 weights_hash: str | None = None) -> None:
+        self.model = model.eval()
+        self._meta = dict(meta or {})
+        self._hash = weights_hash
+        self.device = next(model.parameters()).device
+
+    @classmethod
+    def load(cls, weights: str | Path | None = None, *, device: str = "auto",
+             threads: int | None = None, expect_n: int | None = None) -> TrmdEstimator:
+        """Load weights (None = the shipped default) onto ``device`` ("auto": cuda if available).
+
+        Args:
+            threads: CPU threads for torch (``torch.set_num_threads``); None leaves torch's
+                default (all cores).
+            expect_n: refuse weights trained for another N (:class:`WeightsError`).
+        Raises:
+            WeightsError: missing, corrupt or mismatching weights (see :func:`load_weights`).
+            InputError: unknown or unavailable device, threads < 1.
+        """
+        if threads is not None:
+            if threads < 1:
+                raise InputError(f"threads must be ≥ 1, got {threads}")
+            torch.set_num_threads(threads)
+        model, meta = load_weights(weights, device=str(resolve_device(device)), expect_n=expect_n)
+        path = weights
+        if path is None:
+            from ..weights import default_weights_path
+
+            path = default_weights_path()
+        return cls(model, meta, weights_hash(path))
+
+    @property
+    def n(self) -> int:
+        """N: voxels have 2N channels, outputs 2N+1 frames."""
+        return self.model.n
+
+    @property
+    def channels(self) -> int:
+        """Colour channels the model was trained on: 1 gray, 3 RGB."""
+        return self.model.channels
+
+    @property
+    def meta(self) -> dict[str, Any]:
+        """Metadata of the weights file (architecture, args, recipe, figures …)."""
+        return dict(self._meta)
+
+    @property
+    def weights_hash(self) -> str | None:
+        """Short SHA-256 of the weights file (None for a model given directly)."""
+        return self._hash
+
+    def __call__(self, blurry: np.ndarray, voxels: np.ndarray) -> np.ndarray:
+        """Latent frames from a blurry frame and its SCER voxels.
+
+        Args:
+            blurry: (H, W) gray or (H, W, 3) RGB, float [0, 1].
+            voxels: (2N, H, W) SCER voxels (:func:`trmd_cli.voxel.scer_voxels`), N = ``self.n``.
+        Returns:
+            (2N+1, H, W) or (2N+1, H, W, 3) float32, time order k = 0..2N, not clipped (callers
+            clip when writing images). The mean over frames equals ``blurry``.
+        Raises:
+            InputError: the voxel count does not match the model's N, or values are not finite.
+            ShapeError: shapes do not fit together.
+        """
+        blurry = np.asarray(blurry, dtype=np.float32)
+        voxels = np.asarray(voxels, dtype=np.float32)
+        if blurry.ndim == 3 and blurry.shape[-1] == 1:
+            blurry = blurry[..., 0]
+        if not (blurry.ndim == 2 or (blurry.ndim == 3 and blurry.shape[-1] == 3)):
+            raise ShapeError(f"blurry frame has shape {blurry.shape}, expected (H, W) or (H, W, 3)")
+        h, w = blurry.shape[:2]
+        if voxels.ndim != 3 or voxels.shape[1:] != (h, w):
+            raise ShapeError(f"voxels have shape {voxels.shape}, expected (2N, {h}, {w}) to match "
+                             f"the {w}x{h} frame")
+        if voxels.shape[0] != 2 * self.n:
+            raise InputError(f"got {voxels.shape[0]} voxel channels but the model was trained for "
+                             f"N = {self.n} ({2 * self.n} channels)",
+                             hint=f"voxelize with --n {self.n}, or use weights trained for "
+                             f"N = {voxels.shape[0] // 2}")
+        if not (np.isfinite(blurry).all() and np.isfinite(voxels).all()):
+            raise InputError("the frame or the voxels contain NaN or infinite values")
+
+        rgb = blurry.ndim == 3
+        # model input: (batch, C_model, H, W); a batch of 3 runs a gray model per colour channel
+        if rgb and self.channels == 1:
+            b = blurry.transpose(2, 0, 1)[:, None]
+        elif rgb:
+            b = blurry.transpose(2, 0, 1)[None]
+        elif self.channels == 3:
+            b = np.repeat(blurry[None, None], 3, axis=1)
+        else:
+            b = blurry[None, None]
+
+        with torch.inference_mode():
+            tb = torch.from_numpy(np.ascontiguousarray(b)).to(self.device)
+            tv = torch.from_numpy(voxels).to(self.device)[None].expand(b.shape[0], -1, -1, -1)
+            latent = reconstruct(tb, self.model(tb, tv))  # (batch, 2N+1, C, H, W)
+            out = latent.float().cpu().numpy()
+
+        if rgb and self.channels == 1:
+            return np.ascontiguousarray(out[:, :, 0].transpose(1, 2, 3, 0))
+        if rgb:
+            return np.ascontiguousarray(out[0].transpose(0, 2, 3, 1))
+        if self.channels == 3:
+            return out[0].mean(axis=1)
+        return out[0, :, 0]
+
+    def __repr__(self) -> str:
+        return (f"TrmdEstimator({self._meta.get('architecture', self.model.variant)}, "
+                f"n={self.n}, channels={self.channels}, device={self.device}, "
+                f"weights={self._hash})")

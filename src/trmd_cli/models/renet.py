@@ -1,0 +1,514 @@
+"""RE-Net: the residual-estimation network of TRMD.
+
+Paper: K. Chen and L. Yu, "Motion Deblur by Learning Residual from Events", IEEE Transactions on
+Multimedia, 2024 (official code: github.com/chenkang455/TRMD). Written from the paper's
+description; no code or weights of the official repository are included, so no weight licence
+applies here. Weights trained by this project are described by their safetensors metadata.
+
+From a blurry frame B (B, C, H, W) and SCER voxels V (B, 2N, H, W) the network predicts the 2N
+residuals R(k) = L(k) − L(N), k ≠ N, of each colour channel: (B, 2N, C, H, W). The latent frames
+then follow in closed form (:func:`trmd_cli.reconstruct.reconstruct`, Eq. 11–12).
+
+Structure (paper, Sec. III):
+
+1. Feature extraction: two 5×5 conv + ReLU per modality.
+2. Fusion: the cross-modal channel block (CCB) — two branches of C×C channel attention, each
+   taking its keys and values from one modality and its queries from the other, added back to
+   its input — then the spatial fusion block (SFB): two 1×1 convs over both outputs give
+   per-pixel, per-channel weights, softmax-normalised across the two modalities, that mix them.
+3. Residual estimation: a U-Net with four stride-2 5×5 convs, residual blocks at the bottom,
+   four stride-2 5×5 transposed convs with skip connections, and a 1×1 head over
+   [decoder features, B, V].
+
+Departures from the official code, deliberate: the SFB softmax runs over the two modalities
+(as the paper writes) rather than over the 2C concatenated channels; each CCB branch has its own
+output projection (the official code reuses the blur one); no dropout in the query/key
+projections. ``attn_norm`` adds size-independent attention (see :func:`channel_attention_logits`).
+
+Any H×W is accepted: inputs are replicate-padded to a multiple of 16 and the output cropped back.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..errors import InputError, check_shape
+from .registry import register_model
+
+__all__ = [
+    "RENet",
+    "ATTN_NORMS",
+    "NORMS",
+    "channel_attention_logits",
+    "channel_cross_attention",
+    "ChannelAttention",
+    "CrossChannelBlock",
+    "SpatialFusionBlock",
+    "PointwiseConv",
+    "count_macs",
+    "count_params",
+    "variant_args",
+    "trmd_paper",
+    "trmd_base",
+    "trmd_small",
+    "test_trmd",
+]
+
+#: how the C×C attention logits are scaled (see :func:`channel_attention_logits`)
+ATTN_NORMS = ("none", "spatial", "l2")
+#: normalisation layers inside the network
+NORMS = ("batch", "none")
+#: number of stride-2 stages; inputs are padded to a multiple of 2**_DOWNS
+_DOWNS = 4
+
+
+# --------------------------------------------------------------------------------------------
+# Building blocks
+
+
+def channel_attention_logits(key: torch.Tensor, query: torch.Tensor, norm: str) -> torch.Tensor:
+    """C×C attention logits between the channels of ``key`` and ``query``.
+
+    Args:
+        key, query: (B, C, H, W).
+        norm: ``"none"`` — K·Qᵀ/√C as in the paper: a sum over H·W pixels, so the logits grow
+            with the image area and differ between training crops and full frames;
+            ``"spatial"`` — additionally divided by H·W (a mean over pixels);
+            ``"l2"`` — each channel's H·W vector L2-normalised first (cosine similarity, as in
+            Restormer), also divided by √C.
+    Returns:
+        (B, C, C) logits; row i attends over the query channels j.
+    Raises:
+        ShapeError: key and query differ in shape.
+    """
+    check_shape(key, ("B", "C", "H", "W"), "key")
+    check_shape(query, tuple(key.shape), "query")
+    b, c, h, w = key.shape
+    k = key.reshape(b, c, h * w)
+    q = query.reshape(b, c, h * w)
+    if norm == "l2":
+        k = F.normalize(k, dim=-1)
+        q = F.normalize(q, dim=-1)
+    logits = torch.matmul(k, q.transpose(-2, -1)) * (c ** -0.5)
+    if norm == "spatial":
+        logits = logits / (h * w)
+    elif norm not in ("none", "l2"):
+        raise InputError(f"attn_norm {norm!r} is not one of {', '.join(ATTN_NORMS)}")
+    return logits
+
+
+def channel_cross_attention(key: torch.Tensor, query: torch.Tensor, value: torch.Tensor,
+                            norm: str = "none",
+                            temperature: torch.Tensor | float = 1.0) -> torch.Tensor:
+    """softmax(temperature · logits(K, Q)) · V, mixing the channels of ``value``.
+
+    Args:
+        key, query, value: (B, C, H, W).
+        norm: see :func:`channel_attention_logits`.
+        temperature: scalar multiplying the logits (learned in the normalised variants).
+    Returns:
+        (B, C, H, W).
+    """
+    check_shape(value, tuple(key.shape), "value")
+    b, c, h, w = value.shape
+    attn = (channel_attention_logits(key, query, norm) * temperature).softmax(dim=-1)
+    return torch.matmul(attn, value.reshape(b, c, h * w)).reshape(b, c, h, w)
+
+
+class ChannelAttention(nn.Module):
+    """Module form of :func:`channel_cross_attention` (holds ``norm`` and the temperature).
+
+    Args:
+        norm: one of :data:`ATTN_NORMS`. The normalised variants (``"spatial"``, ``"l2"``)
+            learn a scalar temperature, initialised to 1, since their logits start small.
+    """
+
+    def __init__(self, norm: str = "none") -> None:
+        super().__init__()
+        if norm not in ATTN_NORMS:
+            raise InputError(f"attn_norm {norm!r} is not one of {', '.join(ATTN_NORMS)}")
+        self.norm = norm
+        self.temperature = nn.Parameter(torch.ones(())) if norm != "none" else None
+
+    def forward(self, key: torch.Tensor, query: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+        t = 1.0 if self.temperature is None else self.temperature
+        return channel_cross_attention(key, query, value, self.norm, t)
+
+    def extra_repr(self) -> str:
+        return f"norm={self.norm!r}"
+
+
+class PointwiseConv(nn.Conv2d):
+    """1×1 convolution computed as one matrix product.
+
+    Same parameters and state-dict keys as ``nn.Conv2d(cin, cout, 1)``; on CPU PyTorch runs
+    1×1 convs through a slow im2col path, while the product W·X over (C, H·W) is 2–4× faster.
+    """
+
+    def __init__(self, cin: int, cout: int, bias: bool = True) -> None:
+        super().__init__(cin, cout, 1, bias=bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return _pointwise(x, self.weight, self.bias)
+
+
+def _pointwise(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    """(B, C, H, W) → (B, O, H, W) with weight (O, C[, 1, 1]): a batched W·X, no transposes."""
+    b, c, h, w = x.shape
+    o = weight.shape[0]
+    wb = weight.reshape(1, o, c).expand(b, o, c)
+    x3 = x.reshape(b, c, h * w)
+    y = torch.bmm(wb, x3) if bias is None else torch.baddbmm(bias.view(1, o, 1), wb, x3)
+    return y.view(b, o, h, w)
+
+
+def _conv_act(cin: int, cout: int, k: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, k, stride, k // 2), nn.ReLU(inplace=True))
+
+
+def _up_act(cin: int, cout: int, k: int = 5) -> nn.Sequential:
+    # output_padding=1 makes every up-step exactly ×2 on the padded (multiple-of-16) grid
+    return nn.Sequential(nn.ConvTranspose2d(cin, cout, k, 2, k // 2, output_padding=1),
+                         nn.ReLU(inplace=True))
+
+
+def _proj_norm_act(cin: int, cout: int, norm: str) -> nn.Sequential:
+    """1×1 conv [+ BatchNorm] + ReLU: the query/key projections of the CCB."""
+    if norm == "batch":
+        return nn.Sequential(PointwiseConv(cin, cout, bias=False), nn.BatchNorm2d(cout),
+                             nn.ReLU(inplace=True))
+    return nn.Sequential(PointwiseConv(cin, cout), nn.ReLU(inplace=True))
+
+
+class ResBlock(nn.Module):
+    """x → ReLU(x + conv3×3[-BN]-ReLU-conv3×3[-BN](x)).
+
+    Args:
+        channels: feature channels.
+        norm: ``"batch"`` (paper) or ``"none"`` (convs get biases instead).
+    """
+
+    def __init__(self, channels: int, norm: str = "batch") -> None:
+        super().__init__()
+        bn = norm == "batch"
+        layers: list[nn.Module] = [nn.Conv2d(channels, channels, 3, 1, 1, bias=not bn)]
+        if bn:
+            layers.append(nn.BatchNorm2d(channels))
+        layers += [nn.ReLU(inplace=True), nn.Conv2d(channels, channels, 3, 1, 1, bias=not bn)]
+        if bn:
+            layers.append(nn.BatchNorm2d(channels))
+        self.body = nn.Sequential(*layers)
+        self.act = nn.ReLU(inplace=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.act(x + self.body(x))
+
+
+class FeatureExtractor(nn.Module):
+    """Two 5×5 conv + ReLU: (B, cin, H, W) → (B, cout, H, W), cout/2 channels in between."""
+
+    def __init__(self, cin: int, cout: int) -> None:
+        super().__init__()
+        self.conv1 = _conv_act(cin, max(cout // 2, 1), 5)
+        self.conv2 = _conv_act(max(cout // 2, 1), cout, 5)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.conv2(self.conv1(x))
+
+
+class CrossChannelBlock(nn.Module):
+    """CCB: dual-branch cross-modal channel attention with residual connections.
+
+    Branch m ∈ {blur, event}: out_m = x_m + P_m(softmax(K_m(x_m)·Q_o(x_o)ᵀ)·V_m(x_m)), o the other
+    modality; K, Q are 1×1 conv [+BN] + ReLU, V and P plain 1×1 convs.
+
+    Args:
+        dim: channels of each modality's features.
+        norm: ``"batch"`` or ``"none"`` in the query/key projections.
+        attn_norm: scaling of the attention logits, one of :data:`ATTN_NORMS`.
+    """
+
+    def __init__(self, dim: int, norm: str = "batch", attn_norm: str = "none") -> None:
+        super().__init__()
+        self.blur_q = _proj_norm_act(dim, dim, norm)
+        self.blur_k = _proj_norm_act(dim, dim, norm)
+        self.blur_v = PointwiseConv(dim, dim)
+        self.blur_proj = PointwiseConv(dim, dim)
+        self.event_q = _proj_norm_act(dim, dim, norm)
+        self.event_k = _proj_norm_act(dim, dim, norm)
+        self.event_v = PointwiseConv(dim, dim)
+        self.event_proj = PointwiseConv(dim, dim)
+        self.blur_attn = ChannelAttention(attn_norm)
+        self.event_attn = ChannelAttention(attn_norm)
+
+    def forward(self, blur: torch.Tensor,
+                event: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        qb, qe = self.blur_q(blur), self.event_q(event)
+        b = self.blur_attn(self.blur_k(blur), qe, self.blur_v(blur))
+        e = self.event_attn(self.event_k(event), qb, self.event_v(event))
+        return blur + self.blur_proj(b), event + self.event_proj(e)
+
+
+class SpatialFusionBlock(nn.Module):
+    """SFB: F = w_b·S_b + w_e·S_e with (w_b, w_e) = softmax over the two modalities of two
+    1×1 convs g_b, g_e of [S_b, S_e] — a weight per pixel and channel.
+
+    A softmax over two entries is w_b = sigmoid(g_b − g_e), and g_b − g_e is one 1×1 conv whose
+    weights are the difference of the two: that is how it is computed (same parameters, a third
+    of the full-resolution work of two convs, a stack and a softmax).
+
+    Args:
+        dim: channels of each input (and of the output).
+    """
+
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.gate_blur = PointwiseConv(2 * dim, dim)
+        self.gate_event = PointwiseConv(2 * dim, dim)
+
+    def forward(self, blur: torch.Tensor, event: torch.Tensor) -> torch.Tensor:
+        both = torch.cat([blur, event], 1)
+        w_blur = torch.sigmoid(_pointwise(both, self.gate_blur.weight - self.gate_event.weight,
+                                          self.gate_blur.bias - self.gate_event.bias))
+        return event + w_blur * (blur - event)
+
+
+# --------------------------------------------------------------------------------------------
+# The model
+
+
+class RENet(nn.Module):
+    """Residual-estimation network: (blurry, SCER voxels) → residuals R(k) = L(k) − L(N).
+
+    Args:
+        n: N; the voxels have 2N channels and 2N residuals are predicted per colour channel.
+        channels: colour channels of the frame: 1 (gray) or 3 (RGB). Voxels are shared.
+        feat_width: channels of each modality's extracted features (paper: 32).
+        widths: channels of the four encoder stages (paper: 64, 128, 256, 512).
+        num_res_blocks: residual blocks at the bottom of the U-Net (paper: 2).
+        norm: ``"batch"`` (paper) or ``"none"``: normalisation in residual blocks and the CCB's
+            query/key projections.
+        attn_norm: CCB logit scaling, one of :data:`ATTN_NORMS` (paper: ``"none"``).
+
+    Shapes:
+        blurry (B, C, H, W), voxels (B, 2N, H, W) → residuals (B, 2N, C, H, W), any H, W ≥ 1.
+
+    Example::
+
+        >>> from trmd_cli.models import create_model
+        >>> import torch
+        >>> net = create_model("test_trmd").eval()
+        >>> net(torch.rand(1, 1, 37, 53), torch.randn(1, 6, 37, 53)).shape
+        torch.Size([1, 6, 1, 37, 53])
+    """
+
+    def __init__(self, n: int = 3, channels: int = 1, feat_width: int = 32,
+                 widths: Sequence[int] = (64, 128, 256, 512), num_res_blocks: int = 2,
+                 norm: str = "batch", attn_norm: str = "none") -> None:
+        super().__init__()
+        widths = tuple(int(w) for w in widths)
+        if n < 1:
+            raise InputError(f"N must be ≥ 1, got {n}")
+        if channels not in (1, 3):
+            raise InputError(f"channels must be 1 (gray) or 3 (RGB), got {channels}")
+        if len(widths) != _DOWNS or min(widths) < 2 or feat_width < 1:
+            raise InputError(f"widths must be {_DOWNS} integers ≥ 2 and feat_width ≥ 1, got "
+                             f"{widths}, {feat_width}")
+        if norm not in NORMS:
+            raise InputError(f"norm {norm!r} is not one of {', '.join(NORMS)}")
+        if attn_norm not in ATTN_NORMS:
+            raise InputError(f"attn_norm {attn_norm!r} is not one of {', '.join(ATTN_NORMS)}")
+        #: every constructor argument, JSON-friendly: what weights metadata records
+        self.args: dict[str, Any] = dict(n=n, channels=channels, feat_width=feat_width,
+                                         widths=list(widths), num_res_blocks=num_res_blocks,
+                                         norm=norm, attn_norm=attn_norm)
+        #: registered variant name, set by the factories (None when built directly)
+        self.variant: str | None = None
+        self.n, self.channels = n, channels
+        m = 2 * n
+        w0, w1, w2, w3 = widths
+
+        self.blur_fe = FeatureExtractor(channels, feat_width)
+        self.event_fe = FeatureExtractor(m, feat_width)
+        self.ccb = CrossChannelBlock(feat_width, norm, attn_norm)
+        self.sfb = SpatialFusionBlock(feat_width)
+
+        self.down1 = _conv_act(feat_width, w0, 5, 2)
+        self.down2 = _conv_act(w0, w1, 5, 2)
+        self.down3 = _conv_act(w1, w2, 5, 2)
+        self.down4 = _conv_act(w2, w3, 5, 2)
+        self.res = nn.Sequential(*[ResBlock(w3, norm) for _ in range(num_res_blocks)])
+        self.up1 = _up_act(w3, w2)
+        self.up2 = _up_act(2 * w2, w1)
+        self.up3 = _up_act(2 * w1, w0)
+        self.up4 = _up_act(2 * w0, max(w0 // 2, 1))
+        self.head = PointwiseConv(max(w0 // 2, 1) + channels + m, m * channels)
+        self.init_weights()
+
+    def init_weights(self) -> None:
+        """PyTorch defaults, except a near-zero head: training starts from R ≈ 0, i.e. every
+        latent frame ≈ B, instead of random residuals."""
+        nn.init.normal_(self.head.weight, std=1e-3)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, blurry: torch.Tensor, voxels: torch.Tensor) -> torch.Tensor:
+        """Residuals (B, 2N, C, H, W) from blurry (B, C, H, W) and voxels (B, 2N, H, W).
+
+        Raises:
+            ShapeError: channel counts differ from the model's, or sizes disagree.
+        """
+        check_shape(blurry, ("B", self.channels, "H", "W"), "blurry")
+        check_shape(voxels, (blurry.shape[0], 2 * self.n, blurry.shape[2], blurry.shape[3]),
+                     "voxels")
+        h, w = blurry.shape[-2:]
+        mult = 2 ** _DOWNS
+        pad = (0, (-w) % mult, 0, (-h) % mult)
+        if any(pad):
+            blurry = F.pad(blurry, pad, mode="replicate")
+            voxels = F.pad(voxels, pad, mode="replicate")
+
+        sb, se = self.ccb(self.blur_fe(blurry), self.event_fe(voxels))
+        x0 = self.sfb(sb, se)
+        x1 = self.down1(x0)
+        x2 = self.down2(x1)
+        x3 = self.down3(x2)
+        x = self.res(self.down4(x3))
+        x = self.up1(x)
+        x = self.up2(torch.cat([x, x3], 1))
+        x = self.up3(torch.cat([x, x2], 1))
+        x = self.up4(torch.cat([x, x1], 1))
+        out = self.head(torch.cat([x, blurry, voxels], 1))[..., :h, :w]
+        return out.reshape(out.shape[0], 2 * self.n, self.channels, h, w)
+
+    def extra_repr(self) -> str:
+        return f"variant={self.variant!r}"
+
+
+# --------------------------------------------------------------------------------------------
+# Named variants: arguments only; N and channels are chosen at creation (n=, channels=).
+# Figures for gray, N = 3, 346×260 (count_macs). attn_norm: the paper's "none" for trmd_paper;
+# the size-independent "spatial" elsewhere until training measures which one ships.
+
+_variant_args: dict[str, dict[str, Any]] = {
+    # the paper's width: 19.26 M parameters, 21.1 GMACs
+    "trmd_paper": dict(feat_width=32, widths=(64, 128, 256, 512), num_res_blocks=2,
+                       norm="batch", attn_norm="none"),
+    # in between: three quarters of the paper's widths, 10.8 M parameters, 11.9 GMACs
+    "trmd_base": dict(feat_width=24, widths=(48, 96, 192, 384), num_res_blocks=2,
+                      norm="batch", attn_norm="spatial"),
+    # 4.8 M parameters, 5.4 GMACs: sized for ≤ 0.15 s per frame on 2 CPU cores
+    # (bench/bench_renet.py); full-resolution layers dominate its time, so they stay narrow
+    "trmd_small": dict(feat_width=16, widths=(32, 64, 128, 256), num_res_blocks=2,
+                       norm="batch", attn_norm="spatial"),
+    # 13.5 k parameters: for tests only
+    "test_trmd": dict(feat_width=4, widths=(4, 8, 8, 8), num_res_blocks=1,
+                      norm="batch", attn_norm="spatial"),
+}
+
+
+def variant_args(name: str) -> dict[str, Any]:
+    """The registered arguments of a variant (a copy)."""
+    return dict(_variant_args[name])
+
+
+def _create_renet(variant: str, **kwargs: Any) -> RENet:
+    args = {**_variant_args[variant], **kwargs}
+    model = RENet(**args)
+    model.variant = variant
+    return model
+
+
+@register_model
+def trmd_paper(**kwargs: Any) -> RENet:
+    """RE-Net at the paper's width (≈ 19.3 M parameters)."""
+    return _create_renet("trmd_paper", **kwargs)
+
+
+@register_model
+def trmd_base(**kwargs: Any) -> RENet:
+    """RE-Net between the paper's width and ``trmd_small``."""
+    return _create_renet("trmd_base", **kwargs)
+
+
+@register_model
+def trmd_small(**kwargs: Any) -> RENet:
+    """RE-Net sized for CPU inference at DAVIS346 resolution."""
+    return _create_renet("trmd_small", **kwargs)
+
+
+@register_model
+def test_trmd(**kwargs: Any) -> RENet:
+    """Tiny RE-Net for tests."""
+    return _create_renet("test_trmd", **kwargs)
+
+
+# --------------------------------------------------------------------------------------------
+# Profiling
+
+
+def count_params(model: nn.Module) -> int:
+    """Number of parameters (buffers such as BatchNorm statistics excluded)."""
+    return sum(p.numel() for p in model.parameters())
+
+
+def count_macs(model: RENet, h: int, w: int) -> int:
+    """Multiply-accumulates of one forward pass on a (1, C, h, w) frame.
+
+    Counted with forward hooks: Conv2d (output elements × C_in/groups × k²), ConvTranspose2d
+    (input elements × C_out/groups × k², the multiplies actually done), Linear, and the two
+    C×C×HW matmuls of each :class:`ChannelAttention`, and the single gate conv each
+    :class:`SpatialFusionBlock` runs (its convs are not called as modules). Element-wise work
+    (ReLU, softmax, norms, padding) is not counted. The count is for the padded size the
+    network really runs at.
+    """
+    total = 0
+
+    def conv_hook(mod: nn.Module, inp: tuple, out: torch.Tensor) -> None:
+        nonlocal total
+        k = math.prod(mod.kernel_size)
+        if isinstance(mod, nn.ConvTranspose2d):
+            total += inp[0].numel() * (mod.out_channels // mod.groups) * k
+        else:
+            total += out.numel() * (mod.in_channels // mod.groups) * k
+
+    def linear_hook(mod: nn.Module, inp: tuple, out: torch.Tensor) -> None:
+        nonlocal total
+        total += out.numel() * mod.in_features
+
+    def attn_hook(mod: nn.Module, inp: tuple, out: torch.Tensor) -> None:
+        nonlocal total
+        b, c, hh, ww = inp[0].shape
+        total += 2 * b * c * c * hh * ww  # K·Qᵀ, then attention·V
+
+    def sfb_hook(mod: nn.Module, inp: tuple, out: torch.Tensor) -> None:
+        nonlocal total
+        total += out.numel() * 2 * out.shape[1]  # the one gate conv it runs (2C → C)
+
+    handles = []
+    for mod in model.modules():
+        if isinstance(mod, (nn.Conv2d, nn.ConvTranspose2d)):
+            handles.append(mod.register_forward_hook(conv_hook))
+        elif isinstance(mod, nn.Linear):
+            handles.append(mod.register_forward_hook(linear_hook))
+        elif isinstance(mod, ChannelAttention):
+            handles.append(mod.register_forward_hook(attn_hook))
+        elif isinstance(mod, SpatialFusionBlock):
+            handles.append(mod.register_forward_hook(sfb_hook))
+    p = next(model.parameters())
+    was_training = model.training
+    try:
+        model.eval()
+        with torch.no_grad():
+            model(torch.zeros(1, model.channels, h, w, device=p.device, dtype=p.dtype),
+                  torch.zeros(1, 2 * model.n, h, w, device=p.device, dtype=p.dtype))
+    finally:
+        for hd in handles:
+            hd.remove()
+        model.train(was_training)
+    return total

@@ -1,0 +1,355 @@
+"""RE-Net weights as safetensors files that describe themselves; never pickle.
+
+A weights file holds the model's tensors (fp16 parameters by default, fp32 BatchNorm statistics)
+and string metadata saying what they are:
+
+==================  =====================================================================
+``format``          ``"trmd-weights"``; ``format_version`` ``"1"``
+``architecture``    registered variant name (``trmd_small`` …), informative
+``model_class``     ``"RENet"``
+``args``            JSON of every constructor argument: the model is rebuilt from these
+``n``, ``channels`` N and colour channels, repeated for quick checks
+``recipe``          JSON: how it was trained (recipe file contents, data, seed …)
+``figures``         JSON: training / validation figures (PSNR, loss, steps …)
+``dtype``           ``float16`` or ``float32``; ``trmd_version``
+==================  =====================================================================
+
+Further keys given in ``meta`` are stored JSON-encoded. The shipped default lives in the package
+at ``trmd_cli/weights/trmd_default.safetensors`` and is found through importlib.resources.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import struct
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from .errors import InputError, WeightsError
+from .write import atomic_path
+
+if TYPE_CHECKING:  # torch stays unimported until weights are really saved or loaded
+    from .models.renet import RENet
+
+__all__ = [
+    "FORMAT",
+    "FORMAT_VERSION",
+    "DEFAULT_WEIGHTS",
+    "save_weights",
+    "load_weights",
+    "read_metadata",
+    "weights_hash",
+    "default_weights_path",
+    "resolve_device",
+]
+
+FORMAT = "trmd-weights"
+FORMAT_VERSION = "1"
+#: file name of the shipped weights inside the package folder ``trmd_cli/weights/``
+DEFAULT_WEIGHTS = "trmd_default.safetensors"
+
+_PLAIN = ("format", "format_version", "architecture", "model_class", "dtype", "trmd_version")
+_INTS = ("n", "channels")
+_RESERVED = (*_PLAIN, *_INTS, "args")
+_NO_WEIGHTS_HINT = "pass --weights PATH to a .safetensors file written by `trmd train`"
+
+
+def default_weights_path() -> Path:
+    """Where the shipped default weights are (the file may not exist yet)."""
+    return Path(str(resources.files("trmd_cli") / "weights" / DEFAULT_WEIGHTS))
+
+
+def weights_hash(path: str | Path) -> str:
+    """First 12 hex digits of the file's SHA-256: names the weights in logs and outputs."""
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    except OSError as e:
+        raise WeightsError(f"cannot read weights file ({e.strerror})", path=path) from None
+    return h.hexdigest()[:12]
+
+
+def resolve_device(device: str = "auto"):
+    """``"auto"`` → cuda when available, else cpu; checks that a named device exists."""
+    import torch
+
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise InputError(f"unknown device {device!r}", hint="use auto, cpu or cuda") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("CUDA is not available on this machine", hint="use --device cpu")
+    return dev
+
+
+# --------------------------------------------------------------------------------------------
+# Saving
+
+
+def save_weights(path: str | Path, model: RENet, *, meta: dict[str, Any] | None = None,
+                 half: bool = True) -> Path:
+    """Write ``model``'s tensors and self-describing metadata to a safetensors file, atomically.
+
+    Args:
+        path: output file (``.safetensors``); its folder must exist. Overwrite policy is the
+            caller's (:func:`trmd_cli.write.check_output`).
+        model: a :class:`~trmd_cli.models.RENet`.
+        meta: ``recipe``, ``figures`` and any other JSON-serialisable entries. Entries named like
+            the model's own keys (``n``, ``channels``, ``args`` …) must agree with the model.
+        half: store parameters as float16 (half the size; BatchNorm statistics stay float32).
+    Returns:
+        ``path``.
+    Raises:
+        WeightsError: non-finite values (or values beyond float16 range when ``half``).
+        InputError: ``meta`` contradicts the model, is not JSON-serialisable, or the folder
+            does not exist.
+    """
+    import torch
+    from safetensors.torch import save
+
+    from . import __version__
+
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise InputError("the weights file's folder does not exist", path=path.parent,
+                         hint="create it first")
+    params = {name for name, _ in model.named_parameters()}
+    tensors: dict[str, torch.Tensor] = {}
+    for name, t in model.state_dict().items():
+        t = t.detach().to("cpu")
+        if t.is_floating_point():
+            if not torch.isfinite(t).all():
+                raise WeightsError(f"tensor {name} has NaN or infinite values; not saving",
+                                   hint="the training diverged: lower the learning rate")
+            t = t.to(torch.float16 if half and name in params else torch.float32)
+            if not torch.isfinite(t).all():
+                raise WeightsError(f"tensor {name} overflows float16", hint="save with half=False")
+        tensors[name] = t.contiguous()
+
+    own = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "architecture": getattr(model, "variant", None) or "custom",
+        "model_class": type(model).__name__,
+        "args": _dumps(model.args),
+        "n": str(model.n),
+        "channels": str(model.channels),
+        "dtype": "float16" if half else "float32",
+        "trmd_version": __version__,
+    }
+    metadata = dict(own)
+    ours = {"n": model.n, "channels": model.channels, "args": model.args}
+    for key, value in (meta or {}).items():
+        if key == "architecture":
+            metadata[key] = str(value)  # e.g. a name for a variant built with overrides
+            continue
+        if key in _RESERVED:
+            if key not in ours or _dumps(value) != _dumps(ours[key]):
+                raise InputError(f"meta[{key!r}] = {value!r} contradicts the model, which "
+                                 "sets it", hint=f"leave {key!r} out of meta")
+            continue
+        metadata[key] = _dumps(value, key)
+    for key in ("recipe", "figures"):
+        metadata.setdefault(key, "null")
+
+    data = _canonical(save(tensors, metadata=metadata))
+    with atomic_path(path, suffix=".safetensors") as tmp:
+        tmp.write_bytes(data)
+    return path
+
+
+def _canonical(data: bytes) -> bytes:
+    """Rewrite the safetensors header with sorted metadata keys.
+
+    safetensors writes metadata in hash-map order, which varies from run to run; sorting makes
+    the same model + metadata give the same bytes, hence the same :func:`weights_hash`.
+    """
+    (size,) = struct.unpack("<Q", data[:8])
+    header = json.loads(data[8:8 + size])
+    meta = header.pop("__metadata__", None)
+    ordered = {"__metadata__": dict(sorted(meta.items()))} if meta else {}
+    ordered.update(sorted(header.items()))  # offsets are absolute in the body: order is free
+    raw = json.dumps(ordered, separators=(",", ":"), ensure_ascii=False).encode()
+    raw += b" " * (-len(raw) % 8)  # the format pads the header with spaces to 8 bytes
+    return struct.pack("<Q", len(raw)) + raw + data[8 + size:]
+
+
+def _dumps(value: Any, key: str = "") -> str:
+    try:
+        return json.dumps(value, sort_keys=True, default=_json_default)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"meta[{key!r}] is not JSON-serialisable: {e}") from None
+
+
+def _json_default(o: Any) -> Any:
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"{type(o).__name__} is not JSON-serialisable")
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+
+
+def _existing(path: str | Path | None) -> Path:
+    if path is None:
+        p = default_weights_path()
+        if not p.is_file():
+            raise WeightsError("no shipped TRMD weights are installed", hint=_NO_WEIGHTS_HINT)
+        return p
+    p = Path(path)
+    if not p.exists():
+        raise WeightsError("weights file not found", path=p,
+                           hint="check the path, or omit --weights to use the shipped weights")
+    if not p.is_file():
+        raise WeightsError("weights path is not a file", path=p, hint=_NO_WEIGHTS_HINT)
+    return p
+
+
+def _sniff(path: Path) -> None:
+    """Name pickles and torch checkpoints explicitly: they are refused, never opened."""
+    with open(path, "rb") as fh:
+        head = fh.read(8)
+    if head.startswith(b"PK\x03\x04"):
+        raise WeightsError("this is a PyTorch checkpoint (zip of pickles), not safetensors",
+                           path=path,
+                           hint="trmd never unpickles files; convert it where you trust it with "
+                           "safetensors.torch.save_file, or use weights from `trmd train`")
+    if len(head) >= 2 and head[0] == 0x80 and 2 <= head[1] <= 5:
+        raise WeightsError("this is a Python pickle, not safetensors", path=path,
+                           hint="trmd never unpickles files; use a .safetensors weights file")
+
+
+def read_metadata(path: str | Path | None = None) -> dict[str, Any]:
+    """The decoded metadata of a weights file (None = the shipped default), without torch.
+
+    Returns:
+        dict with ``architecture``, ``model_class``, ``args`` (dict), ``n``, ``channels``
+        (ints), ``recipe``, ``figures`` and any extra entries, JSON-decoded.
+    Raises:
+        WeightsError: missing file, not safetensors, corrupt or truncated, or no trmd metadata.
+    """
+    from safetensors import SafetensorError, safe_open
+
+    p = _existing(path)
+    _sniff(p)
+    try:
+        with safe_open(str(p), framework="numpy") as fh:
+            raw = fh.metadata() or {}
+    except (SafetensorError, OSError) as e:
+        reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise WeightsError(f"not a readable safetensors file ({reason})", path=p,
+                           hint="the file is truncated or corrupt: copy it again") from None
+    return _decode(raw, p)
+
+
+def _decode(raw: dict[str, str], path: Path) -> dict[str, Any]:
+    if raw.get("format") != FORMAT or "args" not in raw:
+        raise WeightsError("safetensors file without trmd metadata (architecture, args, N)",
+                           path=path, hint="use weights written by `trmd train` "
+                           "(trmd_cli.weights.save_weights)")
+    if raw.get("format_version") != FORMAT_VERSION:
+        raise WeightsError(f"weights format version {raw.get('format_version')!r} is not "
+                           f"supported (this trmd reads version {FORMAT_VERSION})", path=path,
+                           hint="upgrade trmd")
+    meta: dict[str, Any] = {}
+    try:
+        for key, value in raw.items():
+            if key in _PLAIN:
+                meta[key] = value
+            elif key in _INTS:
+                meta[key] = int(value)
+            else:
+                meta[key] = json.loads(value)
+    except ValueError:
+        raise WeightsError(f"metadata entry {key!r} is malformed", path=path,
+                           hint="the file is corrupt: copy it again") from None
+    if not isinstance(meta["args"], dict):
+        raise WeightsError("metadata 'args' is not a JSON object", path=path)
+    return meta
+
+
+def load_weights(path: str | Path | None = None, *, device: str = "cpu",
+                 expect_n: int | None = None,
+                 expect_channels: int | None = None) -> tuple[RENet, dict[str, Any]]:
+    """Rebuild the model a weights file describes and load its tensors.
+
+    Args:
+        path: a ``.safetensors`` file; None = the shipped default weights.
+        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"`` or ``"auto"``.
+        expect_n, expect_channels: refuse weights trained for another N / channel count.
+    Returns:
+        (model in eval mode on ``device``, decoded metadata as from :func:`read_metadata`).
+    Raises:
+        WeightsError: one line saying what is wrong with which file and what to do.
+
+    Example::
+
+        model, meta = load_weights("runs/small/best.safetensors", expect_n=3)
+    """
+    import torch
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    from .models.renet import RENet
+
+    p = _existing(path)
+    meta = read_metadata(p)
+    if meta.get("model_class") != "RENet":
+        raise WeightsError(f"weights are for model class {meta.get('model_class')!r}, not RENet",
+                           path=p, hint=_NO_WEIGHTS_HINT)
+    n, channels = meta["args"].get("n"), meta["args"].get("channels")
+    if expect_n is not None and n != expect_n:
+        raise WeightsError(f"weights are for N = {n}, not N = {expect_n}", path=p,
+                           hint=f"pass --n {n}, or weights trained for N = {expect_n}")
+    if expect_channels is not None and channels != expect_channels:
+        kinds = {1: "gray", 3: "RGB"}
+        raise WeightsError(f"weights are for {channels}-channel ({kinds.get(channels, '?')}) "
+                           f"frames, not {expect_channels}-channel", path=p,
+                           hint=f"use weights trained on {kinds.get(expect_channels, '?')} frames")
+    try:
+        model = RENet(**meta["args"])
+    except (TypeError, ValueError, InputError) as e:
+        raise WeightsError(f"metadata args do not describe a RENet this version builds ({e})",
+                           path=p, hint="upgrade trmd or retrain") from None
+    model.variant = meta.get("architecture")
+
+    try:
+        state = load_file(str(p), device="cpu")
+    except (SafetensorError, OSError) as e:
+        raise WeightsError(f"cannot read tensors ({str(e).splitlines()[0]})", path=p,
+                           hint="the file is truncated or corrupt: copy it again") from None
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(state))
+    extra = sorted(set(state) - set(expected))
+    if missing or extra:
+        parts = []
+        if missing:
+            parts.append(f"{len(missing)} missing (e.g. {', '.join(missing[:3])})")
+        if extra:
+            parts.append(f"{len(extra)} unexpected (e.g. {', '.join(extra[:3])})")
+        raise WeightsError(f"tensors do not match the {meta.get('architecture')} architecture: "
+                           + "; ".join(parts), path=p, hint="the metadata and tensors disagree: "
+                           "the file was edited or written by another tool")
+    for name, t in state.items():
+        if tuple(t.shape) != tuple(expected[name].shape):
+            raise WeightsError(f"tensor {name} has shape {tuple(t.shape)}, the architecture "
+                               f"needs {tuple(expected[name].shape)}", path=p,
+                               hint="the metadata and tensors disagree")
+        if t.is_floating_point() and not torch.isfinite(t).all():
+            raise WeightsError(f"tensor {name} holds NaN or infinite values", path=p,
+                               hint="the weights are corrupt or from a diverged training")
+    model.load_state_dict(state, strict=True)
+    return model.to(resolve_device(device)).eval(), meta
