@@ -15,6 +15,8 @@ from .errors import InputError
 __all__ = ["EventStream", "Exposure", "EVENT_DTYPE", "US_PER_S"]
 
 US_PER_S = 1_000_000
+#: |time| bound in µs (≈146 000 years): beyond it a value is a unit mistake, and int64 overflows
+_T_LIMIT_US = 2.0**62
 
 #: Structured dtype used when events travel as one array (npz/npy structured files, writers).
 EVENT_DTYPE = np.dtype([("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "i1")])
@@ -74,7 +76,8 @@ class EventStream:
         for name in ("x", "y", "p"):
             if len(getattr(self, name)) != n:
                 raise InputError(f"event arrays differ in length: t has {n}, {name} has "
-                                 f"{len(getattr(self, name))}")
+                                 f"{len(getattr(self, name))}",
+                                 hint="x, y, t and p need one entry per event")
         if self.width <= 0 or self.height <= 0:
             raise InputError(f"sensor size {self.width}x{self.height} is not positive",
                              hint="pass --sensor WxH")
@@ -150,11 +153,15 @@ def make_stream(
             bad = int(np.flatnonzero(~np.isfinite(t))[0])
             raise InputError(f"event {bad} has a non-finite time ({t[bad]})", path=source,
                              hint="remove or repair the broken rows")
+        if len(t) and np.abs(t).max() >= _T_LIMIT_US:
+            raise InputError(f"event times up to {np.abs(t).max():g} µs are out of range",
+                             path=source, hint="check --time-unit")
         t = np.rint(t).astype(np.int64)
     elif t.dtype.kind in "iu":
         t = t.astype(np.int64, copy=False)
     else:
-        raise InputError(f"event times have type {t.dtype}, expected numbers", path=source)
+        raise InputError(f"event times have type {t.dtype}, expected numbers", path=source,
+                         hint="store times as integer microseconds or float seconds")
     if len(t) and t.min() < 0:
         bad = int(np.argmin(t))
         raise InputError(f"event {bad} has a negative time ({t[bad]} µs)", path=source,
@@ -169,12 +176,20 @@ def make_stream(
     for name, arr in (("x", x), ("y", y)):
         if arr.dtype.kind == "f":
             if len(arr) and (not np.isfinite(arr).all() or (arr != np.round(arr)).any()):
-                raise InputError(f"{name} coordinates are not whole numbers", path=source)
+                raise InputError(f"{name} coordinates are not whole numbers", path=source,
+                                 hint="check the column order (--columns)")
         elif arr.dtype.kind not in "iub":
-            raise InputError(f"{name} coordinates have type {arr.dtype}", path=source)
+            raise InputError(f"{name} coordinates have type {arr.dtype}", path=source,
+                             hint="store x and y as integer pixel indices")
         if len(arr) and arr.min() < 0:
             raise InputError(f"{name} coordinate {int(arr.min())} is negative", path=source,
                              hint="if the file counts pixels from 1, pass --one-based")
+    for name, size in (("width", width), ("height", height)):
+        # a size read from a file may be anything: check it before comparing coordinates to it
+        if size is not None and (not np.isscalar(size) or not float(size).is_integer()
+                                 or not 0 < size <= 65535):
+            raise InputError(f"sensor {name} {size!r} is not a whole number in 1..65535",
+                             path=source, hint="pass --sensor WxH")
     if width is None:
         width = int(x.max()) + 1 if len(x) else 1
     if height is None:
@@ -186,13 +201,19 @@ def make_stream(
         raise InputError(f"y coordinate {int(y.max())} is outside the sensor height {height}",
                          path=source, hint="check --sensor WxH or the column order (--columns)")
     if width > 65535 or height > 65535:
-        raise InputError(f"sensor size {width}x{height} is too large", path=source)
+        raise InputError(f"sensor size {width}x{height} is too large (coordinates up to "
+                         f"{width - 1}, {height - 1})", path=source,
+                         hint="check the column order (--columns) and --sensor WxH")
     if p.dtype == bool:
         p8 = np.where(p, 1, -1).astype(np.int8)
     else:
+        if p.dtype.kind not in "iuf":
+            raise InputError(f"polarity has type {p.dtype}, expected numbers", path=source,
+                             hint="store polarity as 0/1 or -1/+1")
         if len(p) and p.dtype.kind == "f" and not np.isfinite(p).all():
-            raise InputError("polarity has non-finite values", path=source)
-        pi = p.astype(np.int64, copy=False)
+            raise InputError("polarity has non-finite values", path=source,
+                             hint="remove or repair the broken rows")
+        pi = p  # compared as stored: casting first would turn 1.5 into 1
         if len(pi) and not np.isin(np.unique(pi), (-1, 0, 1)).all():
             raise InputError(f"polarity values {np.unique(pi)[:5].tolist()} are not in {{0, 1, -1}}",
                              path=source, hint="check the column order (--columns)")

@@ -1,6 +1,10 @@
 """Every file the tool writes goes through here: temporary name in the same folder, then
 ``os.replace`` — so an interrupted run never leaves a half-written output, and an output folder
 is assembled aside and swapped in whole.
+
+Temporary names are recognisable: ``.<output name>.trmd-<pid>-<random>.tmp<suffix>``. Ctrl-C and
+SIGTERM remove them on the way out; SIGKILL (or a power cut) cannot, so :func:`check_output`
+sweeps the temporaries of *its* output left by processes that no longer run.
 """
 
 from __future__ import annotations
@@ -8,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -21,6 +26,7 @@ __all__ = [
     "atomic_path",
     "atomic_dir",
     "check_output",
+    "sweep_stale_temps",
     "to_uint",
     "write_image",
     "write_json",
@@ -39,8 +45,14 @@ _UMASK = _umask()
 
 
 def check_output(path: str | Path, overwrite: bool) -> Path:
-    """Refuse an output that exists and is not an empty folder, unless ``overwrite``."""
+    """Refuse an output that exists and is not an empty folder, unless ``overwrite``.
+
+    Also removes what killed runs left while writing this same output (see
+    :func:`sweep_stale_temps`).
+    """
     path = Path(path)
+    if path.parent.exists():
+        sweep_stale_temps(path)
     if path.exists() and not overwrite:
         if not (path.is_dir() and not any(path.iterdir())):
             raise OutputExistsError("output already exists", path=path,
@@ -51,6 +63,66 @@ def check_output(path: str | Path, overwrite: bool) -> Path:
     return path
 
 
+def _temp_prefix(path: Path) -> str:
+    return f".{path.name}.trmd-{os.getpid()}-"
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, OSError):
+        return True  # someone else's process (or unknowable): leave its files alone
+    return True
+
+
+def sweep_stale_temps(path: str | Path) -> list[Path]:
+    """Remove temporaries of ``path`` left by trmd processes that are gone (killed with
+    SIGKILL, power cut). Returns what was removed.
+
+    Only names this module makes are touched: ``.<name>.trmd-<pid>-*.tmp*`` whose ``<pid>`` is not
+    a running process on this machine. An output folder whose swap was cut between its two
+    renames (``.<name>.trmd-<pid>-old.tmp`` present, ``<name>`` absent) is put back first, so
+    the previous output survives.
+    """
+    path = Path(path)
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.trmd-(\d+)-.*\.tmp")
+    removed: list[Path] = []
+    try:
+        candidates = list(path.parent.glob(f".{_glob_escape(path.name)}.trmd-*.tmp*"))
+    except OSError:
+        return removed
+    for tmp in sorted(candidates):
+        m = pattern.match(tmp.name)
+        if not m or _pid_alive(int(m[1])):
+            continue
+        try:
+            if tmp.name.endswith("-old.tmp") and not path.exists():
+                os.replace(tmp, path)
+                continue
+            if tmp.is_dir() and not tmp.is_symlink():
+                shutil.rmtree(tmp)
+            else:
+                tmp.unlink()
+            removed.append(tmp)
+        except OSError:
+            pass  # another run got there first, or no permission: not ours to fight over
+    return removed
+
+
+def _glob_escape(name: str) -> str:
+    return re.sub(r"([*?\[])", r"[\1]", name)
+
+
+def _refuse_folder(path: Path) -> None:
+    if path.is_dir():
+        raise InputError("is a folder, but a file is to be written here", path=path,
+                         hint="give a file name, or remove the folder")
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success rename it onto ``path``.
@@ -59,8 +131,14 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     On any exception (Ctrl-C included) the temporary file is removed and ``path`` is untouched.
     """
     path = Path(path)
+    _refuse_folder(path)
     suffix = path.suffix if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{suffix}", dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=f".tmp{suffix}",
+                                   dir=path.parent)
+    except (PermissionError, FileNotFoundError) as e:
+        raise InputError(f"cannot write here ({e.strerror})", path=path.parent,
+                         hint="choose a folder you can write to") from None
     os.close(fd)
     tmp_path = Path(tmp)
     os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs should look ordinary
@@ -81,11 +159,15 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     new folder is complete.
     """
     path = Path(path)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=".tmp", dir=path.parent))
+    except (PermissionError, FileNotFoundError) as e:
+        raise InputError(f"cannot write here ({e.strerror})", path=path.parent,
+                         hint="choose a folder you can write to") from None
     try:
         yield tmp
         if path.exists():
-            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            old = path.with_name(f"{_temp_prefix(path)}old.tmp")
             os.replace(path, old)
             os.replace(tmp, path)
             if old.is_dir():

@@ -2,13 +2,18 @@
 
 Library code raises :class:`~trmd_cli.errors.TrmdError` subclasses; here they become one line on
 stderr and exit 2. Anything unexpected becomes one line and exit 1, with the traceback only under
-``trmd -v``. Ctrl-C exits 130; outputs are untouched because every writer is atomic.
+``trmd -v``. Ctrl-C exits 130 and ``kill`` (SIGTERM) 143; outputs are untouched because every
+writer is atomic and the signal arrives as an exception that unwinds through the writers.
 """
 
 from __future__ import annotations
 
 import functools
+import os
+import signal
 import sys
+import threading
+import warnings
 from collections.abc import Callable
 from typing import TypeVar
 
@@ -18,6 +23,12 @@ from rich.console import Console
 from ..errors import TrmdError
 
 F = TypeVar("F", bound=Callable)
+
+# OpenCV and its FFmpeg backend print their own complaints about damaged images and videos
+# straight to stderr (before our one-line error). Read when cv2 first loads, which every command
+# does inside its body, after this; a value the user set is kept.
+os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 
 #: stderr console shared by all commands (progress bars, warnings, errors)
 err = Console(stderr=True, highlight=False)
@@ -34,34 +45,72 @@ def fail(message: str, code: int) -> typer.Exit:
     return typer.Exit(code)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so ``with`` blocks (atomic writers) clean up."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    raise Terminated()
+
+
 def guarded(fn: F) -> F:
     """Wrap a command so every failure leaves as one clear line and an exit code."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        # Python's default for SIGTERM is to die on the spot, skipping every cleanup
+        main = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGTERM, _on_sigterm) if main else None
         try:
-            return fn(*args, **kwargs)
-        except (typer.Exit, typer.Abort):
-            raise
-        except TrmdError as e:
-            if state["verbose"]:
-                err.print_exception()
-            raise fail(_escape(str(e)), e.exit_code) from None
-        except KeyboardInterrupt:
-            raise fail("interrupted; no partial output was left", 130) from None
-        except MemoryError:
-            raise fail("out of memory; try a smaller --tile or fewer frames at once", 1) from None
-        except Exception as e:  # noqa: BLE001 - the boundary is the place for it
-            if state["verbose"]:
-                err.print_exception()
-                raise fail(f"unexpected {type(e).__name__}: {_escape(str(e))}", 1) from None
-            raise fail(
-                f"unexpected {type(e).__name__}: {_escape(str(e))} "
-                "(run `trmd -v …` for the traceback and please report it)",
-                1,
-            ) from None
+            with warnings.catch_warnings():
+                if not state["verbose"]:
+                    # library warnings (numpy casts, h5py) would break the one-line promise;
+                    # what users need to know is said by warn()
+                    warnings.simplefilter("ignore")
+                return _run(fn, args, kwargs)
+        finally:
+            if main:
+                signal.signal(signal.SIGTERM, previous)
 
     return wrapper  # type: ignore[return-value]
+
+
+def _run(fn: Callable, args, kwargs):
+    """Call the command; turn every failure into one line on stderr and an exit code."""
+    try:
+        return fn(*args, **kwargs)
+    except (typer.Exit, typer.Abort):
+        raise
+    except typer.BadParameter as e:  # raised inside a command body: bad input, exit 2
+        raise fail(_escape(e.format_message()), 2) from None
+    except TrmdError as e:
+        if state["verbose"]:
+            err.print_exception()
+        raise fail(_escape(str(e)), e.exit_code) from None
+    except Terminated:
+        raise fail("terminated; no partial output was left", 143) from None
+    except KeyboardInterrupt:
+        raise fail("interrupted; no partial output was left", 130) from None
+    except MemoryError:
+        raise fail("out of memory; try a smaller --tile or fewer frames at once", 1) from None
+    except Exception as e:  # noqa: BLE001 - the boundary is the place for it
+        if state["verbose"]:
+            err.print_exception()
+            raise fail(f"unexpected {type(e).__name__}: {_escape(str(e))}", 1) from None
+        raise fail(
+            f"unexpected {type(e).__name__}: {_escape(str(e))} "
+            "(run `trmd -v …` for the traceback and please report it)",
+            1,
+        ) from None
+    except BaseException as e:
+        # native extensions raise their crashes outside Exception (pyo3's PanicException)
+        if isinstance(e, (SystemExit, GeneratorExit)):
+            raise
+        if state["verbose"]:
+            err.print_exception()
+        raise fail(f"unexpected {type(e).__name__} in a native library: "
+                   f"{_escape(str(e))} (run `trmd -v …` for details and please report it)",
+                   1) from None
 
 
 def _escape(text: str) -> str:

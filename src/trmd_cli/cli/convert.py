@@ -35,13 +35,22 @@ def convert(
         for w in rec.warnings:
             warn(w)
         n = rec.num_events()
+        if n == 0:
+            raise InputError("the recording holds no events: nothing to convert", path=source,
+                             hint="check the file (trmd info), or a truncated copy")
         if kind in (".h5", ".hdf5"):
             with H5Writer(output, rec.width, rec.height) as w:
                 for chunk in rec.iter_chunks():
                     w.add_events(chunk)
                 for fr in rec.frames():
-                    if fr.exposure is not None:
-                        w.add_frame(fr.image, fr.exposure)
+                    if fr.exposure is None:
+                        continue
+                    if fr.image.shape[:2] != (rec.height, rec.width):
+                        raise InputError(
+                            f"frame {fr.name} is {fr.image.shape[1]}x{fr.image.shape[0]} but the "
+                            f"sensor is {rec.width}x{rec.height}", path=source,
+                            hint="convert to .npz (events and windows only) instead")
+                    w.add_frame(fr.image, fr.exposure)
         else:
             stream = rec.events()
             windows = rec.frame_exposures() or rec.stored_windows()

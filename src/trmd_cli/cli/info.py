@@ -28,6 +28,8 @@ def info(
         for w in rec.warnings:
             warn(w)
         s = summarize(rec)
+    if s["events"] == 0:
+        warn(f"{file} holds no events (an empty or cut-short recording?)")
     if as_json:
         typer.echo(json.dumps(s, indent=2))
         return

@@ -66,7 +66,8 @@ def read_options(columns: str | None = None, one_based: bool = False,
             raise InputError(f"--columns {columns!r} must name t, x, y and p once each "
                              "(use _ to skip a column)", hint="e.g. --columns t,y,x,p")
     if time_unit is not None and time_unit not in _UNIT_US:
-        raise InputError(f"--time-unit {time_unit!r} is not one of s, ms, us, ns")
+        raise InputError(f"--time-unit {time_unit!r} is not one of s, ms, us, ns",
+                         hint="e.g. --time-unit us")
     return ReadOptions(columns=cols, one_based=one_based,
                        time_unit=None if time_unit is None else time_unit.replace("µs", "us"),
                        sensor=parse_sensor(sensor))

@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
+from ..errors import TrmdError
 from .base import Frame, MemoryRecording, ReadOptions, Recording
 from .frames import read_image
 from .sniff import FORMATS, detect_format
@@ -40,7 +41,13 @@ def open_events(path: str | Path, options: ReadOptions | None = None) -> Recordi
     fmt = detect_format(path)
     module, func = READERS[fmt].split(":")
     reader = getattr(importlib.import_module(f"{__package__}.{module}"), func)
-    return reader(path, options or ReadOptions())
+    try:
+        return reader(path, options or ReadOptions())
+    except TrmdError as e:
+        if e.path is not None:
+            raise
+        # helpers shared by every reader (unit conversion, make_stream) do not know the file
+        raise type(e)(e.detail, path=path, hint=e.hint) from None
 
 
 def require(module: str, extra: str = "formats", path: str | Path | None = None):

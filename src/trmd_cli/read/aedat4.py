@@ -19,6 +19,10 @@ large ones are decoded again per request, packet by packet (see
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -52,6 +56,48 @@ def frame_pixels_to_float(pixels: np.ndarray, fmt: str) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
+def _is_decoder_failure(e: BaseException) -> bool:
+    """Errors of the ``aedat`` decoder on a damaged file. Its Rust code *panics* on some
+    malformed headers; pyo3 raises that as ``PanicException``, a BaseException."""
+    return (isinstance(e, (OSError, RuntimeError, ValueError))
+            or type(e).__name__ == "PanicException")
+
+
+#: hint for files that cannot be decoded
+_DAMAGED = "the file may be incomplete or damaged: copy it again or re-export it from DV"
+
+
+class _Capture:
+    drop = False
+
+
+@contextlib.contextmanager
+def _native_stderr_captured() -> Iterator[_Capture]:
+    """Hold what native code writes to file descriptor 2 while the block runs; write it out
+    afterwards unless ``drop`` was set. A Rust panic prints its message (and, under
+    RUST_BACKTRACE, a backtrace) straight to fd 2 before Python sees the exception: the user
+    should get one line from the CLI instead."""
+    capture = _Capture()
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no usable fd 2: nothing to protect
+        yield capture
+        return
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield capture
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            if not capture.drop:
+                held.seek(0)
+                data = held.read()
+                if data:
+                    os.write(2, data)
+
+
 class Aedat4Recording(ChunkedRecording):
     """An AEDAT 4.0 file: polarity events (chunked by packet) and APS frames."""
 
@@ -63,14 +109,20 @@ class Aedat4Recording(ChunkedRecording):
         if options.time_unit not in (None, "us"):
             warnings.append(f"--time-unit {options.time_unit} ignored: AEDAT 4 times are "
                             "microseconds by specification")
-        try:
-            streams = self._aedat.Decoder(str(path)).id_to_stream()
-        except (OSError, RuntimeError, ValueError) as e:
-            raise FormatError(f"not a readable AEDAT 4 file: {e}", path=path) from None
+        with _native_stderr_captured() as capture:
+            try:
+                streams = self._aedat.Decoder(str(path)).id_to_stream()
+            except BaseException as e:
+                if not _is_decoder_failure(e):
+                    raise
+                capture.drop = True
+                raise FormatError(f"not a readable AEDAT 4 file: {e}", path=path,
+                                  hint=_DAMAGED) from None
         ev_ids = sorted(i for i, s in streams.items() if s.get("type") == "events")
         fr_ids = sorted(i for i, s in streams.items() if s.get("type") == "frame")
         if not ev_ids and not fr_ids:
-            raise FormatError("the file holds no event or frame stream", path=path)
+            raise FormatError("the file holds no event or frame stream", path=path,
+                              hint="record or export it with the polarity/frame output enabled")
         if len(ev_ids) > 1 or len(fr_ids) > 1:
             warnings.append(f"the file has {len(ev_ids)} event and {len(fr_ids)} frame streams;"
                             " reading the first of each")
@@ -82,7 +134,13 @@ class Aedat4Recording(ChunkedRecording):
             width, height = (options.sensor or (None, None))
         super().__init__(path, "aedat4", width, height, warnings)
         self._frame_meta: list[dict[str, Any]] = []
-        self._build_index(self._first_pass())
+        # the first pass decodes every packet: a damaged one fails here, before any output
+        with _native_stderr_captured() as capture:
+            try:
+                self._build_index(self._first_pass())
+            except FormatError:
+                capture.drop = True
+                raise
         self._note_frames()
 
     # -- decoding ---------------------------------------------------------------------------
@@ -91,18 +149,23 @@ class Aedat4Recording(ChunkedRecording):
         """Packets in file order; decoding failures become FormatError naming the packet."""
         try:
             decoder = self._aedat.Decoder(str(self.path))
-        except (OSError, RuntimeError, ValueError) as e:
-            raise FormatError(f"not a readable AEDAT 4 file: {e}", path=self.path) from None
+        except BaseException as e:
+            if not _is_decoder_failure(e):
+                raise
+            raise FormatError(f"not a readable AEDAT 4 file: {e}", path=self.path,
+                              hint=_DAMAGED) from None
         k = 0
         while True:
             try:
                 packet = next(decoder)
             except StopIteration:
                 return
-            except (OSError, RuntimeError, ValueError) as e:
+            except BaseException as e:
+                if not _is_decoder_failure(e):
+                    raise
                 raise FormatError(f"packet {k} cannot be decoded ({e}): the file is truncated "
                                   "or corrupt", path=self.path,
-                                  hint="re-export the recording from DV") from None
+                                  hint=_DAMAGED) from None
             k += 1
             yield packet
 

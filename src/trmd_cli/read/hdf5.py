@@ -34,6 +34,19 @@ _LAYOUTS = {
 STRIDE = 4096
 
 
+#: hint for files that cannot be decoded
+_DAMAGED = "the file may be incomplete or damaged: copy it again or re-export it"
+
+
+#: what h5py raises when a damaged file is read past its opening
+_H5_ERRORS = (OSError, KeyError, ValueError, TypeError, RuntimeError)
+
+
+def _names(group) -> str:
+    """Member names for a message (damaged files can hold names that are not text)."""
+    return ", ".join(str(k) for k in group.keys())
+
+
 class HDF5Recording(Recording):
     """An HDF5 event file opened for lazy window reads."""
 
@@ -46,10 +59,11 @@ class HDF5Recording(Recording):
         except InputError:
             self.close()
             raise
-        except (KeyError, OSError, ValueError, RuntimeError) as e:
+        except _H5_ERRORS as e:
             # h5py reports damage in many shapes; all mean the same to a user
             self.close()
-            raise FormatError(f"cannot be read, truncated or corrupt ({e})", path=path) from None
+            raise FormatError(f"cannot be read, truncated or corrupt ({e})", path=path,
+                              hint=_DAMAGED) from None
 
     def _open(self, path: Path, options: ReadOptions) -> None:
         import h5py
@@ -63,20 +77,29 @@ class HDF5Recording(Recording):
             self._f = h5py.File(path, "r")
         except OSError as e:
             raise FormatError(f"cannot be opened as HDF5, truncated or corrupt ({e})",
-                              path=path) from None
+                              path=path, hint=_DAMAGED) from None
         f = self._f
         if "events" not in f:
-            raise FormatError(f"no 'events' group (top-level keys: {', '.join(f.keys()) or 'none'})",
+            raise FormatError(f"no 'events' group (top-level keys: {_names(f) or 'none'})",
                               path=path, hint="expected events/x, events/y, events/t, events/p")
         ev = f["events"]
         keys = next((ks for ks in _LAYOUTS.values() if all(k in ev for k in ks)), None)
         if keys is None:
-            raise FormatError(f"events group lacks x/y/t/p datasets (has: {', '.join(ev.keys())})",
+            raise FormatError(f"events group lacks x/y/t/p datasets (has: {_names(ev)})",
                               path=path, hint="expected events/x, y, t, p or events/xs, ys, ts, ps")
+        for k in keys:
+            d = ev[k]
+            if not isinstance(d, h5py.Dataset) or d.ndim != 1 or d.dtype.kind not in "iufb":
+                what = ("a group" if not isinstance(d, h5py.Dataset) else
+                        f"{d.dtype} of shape {d.shape}")
+                raise FormatError(f"events/{k} is {what}, expected a 1-D numeric dataset",
+                                  path=path, hint="store one number per event in each dataset")
         self._x, self._y, self._t, self._p = (ev[k] for k in keys)
         n = self._t.shape[0]
         if any(d.shape[0] != n for d in (self._x, self._y, self._p)):
-            raise FormatError("event datasets differ in length", path=path)
+            raise FormatError("event datasets differ in length "
+                              f"({', '.join(f'{k}: {ev[k].shape[0]}' for k in keys)})",
+                              path=path, hint="x, y, t and p need one entry per event")
         self.layout = ("trmd" if f.attrs.get("format") in ("trmd", b"trmd")
                        else "event_utils" if keys[0] == "xs" else "dsec")
         self._unit = options.time_unit
@@ -84,31 +107,46 @@ class HDF5Recording(Recording):
             self._unit = "s" if self._t.dtype.kind == "f" else "us"
         self._offset_us = 0
         if "t_offset" in f:
-            self._offset_us = int(np.asarray(f["t_offset"][()]).ravel()[0])
+            off = np.asarray(f["t_offset"][()]).ravel()
+            if off.size != 1 or off.dtype.kind not in "iu":
+                raise FormatError(f"t_offset is {off[:4].tolist()}, expected one integer (µs)",
+                                  path=path, hint="repair or remove the t_offset dataset")
+            self._offset_us = int(off[0])
         self._one_based = options.one_based
         width = height = None
-        if options.sensor is not None:
-            width, height = options.sensor
-        elif "width" in f.attrs and "height" in f.attrs:
-            width, height = int(f.attrs["width"]), int(f.attrs["height"])
-        elif "sensor_resolution" in f.attrs:
-            height, width = (int(v) for v in f.attrs["sensor_resolution"][:2])
-        elif "frames/blurry" in f:
-            height, width = f["frames/blurry"].shape[1:3]
+        try:
+            if options.sensor is not None:
+                width, height = options.sensor
+            elif "width" in f.attrs and "height" in f.attrs:
+                width, height = int(f.attrs["width"]), int(f.attrs["height"])
+            elif "sensor_resolution" in f.attrs:
+                height, width = (int(v) for v in f.attrs["sensor_resolution"][:2])
+            elif "frames/blurry" in f:
+                height, width = f["frames/blurry"].shape[1:3]
+        except (TypeError, ValueError, IndexError):
+            raise FormatError("the stored sensor size is not two whole numbers", path=path,
+                              hint="pass --sensor WxH") from None
+        if width is not None and not (0 < width <= 65535 and 0 < height <= 65535):
+            raise FormatError(f"the stored sensor size {width}x{height} is impossible", path=path,
+                              hint="pass --sensor WxH")
         if width is None:
             # a size must be fixed now for lazy windows to agree: one pass over x and y
             try:
                 width = int(self._x[...].max()) + 1 if n else 1
                 height = int(self._y[...].max()) + 1 if n else 1
-            except OSError as e:
+            except _H5_ERRORS as e:
                     raise self._read_error(e) from None
             self.warnings.append("the file stores no sensor size: using max+1 of the "
                                  "coordinates (pass --sensor WxH to set it)")
         self.width, self.height = int(width), int(height)
         try:
             coarse = self._times(self._t[::STRIDE]) if n else np.zeros(0, np.int64)
-        except OSError as e:
+        except _H5_ERRORS as e:
             raise self._read_error(e) from None
+        if len(coarse) and coarse.min() < 0:
+            raise InputError(f"event times are negative ({int(coarse.min())} µs)", path=path,
+                             hint="times must count from the start of the recording; check "
+                                  "--time-unit and t_offset")
         if len(coarse) > 1 and (np.diff(coarse) < 0).any():
             raise InputError("event times are not sorted", path=path,
                              hint="sort the events by time (trmd convert sorts text/npz input)")
@@ -120,10 +158,14 @@ class HDF5Recording(Recording):
         if "filter" in msg.lower() or "plugin" in msg.lower():
             return FormatError("uses an HDF5 compression filter that is not installed", path=self.path,
                                hint="pip install 'trmd[dsec]' (hdf5plugin)")
-        return FormatError(f"cannot be read, truncated or corrupt ({msg})", path=self.path)
+        return FormatError(f"cannot be read, truncated or corrupt ({msg})", path=self.path,
+                           hint=_DAMAGED)
 
     def _times(self, raw: np.ndarray) -> np.ndarray:
-        return to_microseconds(raw, self._unit) + self._offset_us
+        try:
+            return to_microseconds(raw, self._unit) + self._offset_us
+        except InputError as e:
+            raise InputError(e.detail, path=self.path, hint=e.hint) from None
 
     def _search(self, t_us: float, side: str) -> int:
         """Index of ``t_us`` in the full time dataset, reading one STRIDE block."""
@@ -134,7 +176,10 @@ class HDF5Recording(Recording):
         b = int(np.searchsorted(self._coarse, t_us, side=side))
         lo = max(0, (b - 1) * STRIDE)
         hi = min(self._n, b * STRIDE + 1)
-        block = self._times(self._t[lo:hi])
+        try:
+            block = self._times(self._t[lo:hi])
+        except _H5_ERRORS as e:
+            raise self._read_error(e) from None
         return lo + int(np.searchsorted(block, t_us, side=side))
 
     def events(self, start_us=None, end_us=None) -> EventStream:
@@ -145,7 +190,7 @@ class HDF5Recording(Recording):
     def events_by_index(self, i0: int, i1: int) -> EventStream:
         try:
             x, y, t, p = (d[i0:i1] for d in (self._x, self._y, self._t, self._p))
-        except (OSError, KeyError, ValueError) as e:
+        except _H5_ERRORS as e:
             raise self._read_error(e) from None
         if self._one_based:
             x, y = x.astype(np.int64) - 1, y.astype(np.int64) - 1
@@ -165,26 +210,65 @@ class HDF5Recording(Recording):
     def time_range_us(self) -> tuple[int, int]:
         if self._n == 0:
             return (0, 0)
-        return int(self._times(self._t[:1])[0]), int(self._times(self._t[-1:])[0])
+        try:
+            return int(self._times(self._t[:1])[0]), int(self._times(self._t[-1:])[0])
+        except _H5_ERRORS as e:
+            raise self._read_error(e) from None
 
     # ---- frames (trmd layout)
     @property
     def num_frames(self) -> int:
-        return self._f["frames/blurry"].shape[0] if "frames/blurry" in self._f else 0
+        try:
+            if not self._has("frames/blurry"):
+                return 0
+            shape = self._f["frames/blurry"].shape
+        except _H5_ERRORS as e:
+            raise self._read_error(e) from None
+        if shape is None or len(shape) not in (3, 4):
+            raise FormatError(f"frames/blurry has shape {shape}, expected (K, H, W[, 3])",
+                              path=self.path, hint="store the frames as one (K, H, W) dataset")
+        return shape[0]
+
+    def _has(self, name: str) -> bool:
+        try:
+            return name in self._f
+        except _H5_ERRORS as e:
+            raise self._read_error(e) from None
 
     def frame_exposures(self) -> list[Exposure]:
-        if "frames/exposure_start" not in self._f:
+        if not self._has("frames/exposure_start"):
             return []
-        s = self._f["frames/exposure_start"][...]
-        e = self._f["frames/exposure_end"][...]
-        return [Exposure(int(a), int(b)) for a, b in zip(s, e)]
+        if not self._has("frames/exposure_end"):
+            raise FormatError("frames/exposure_start is stored without frames/exposure_end",
+                              path=self.path, hint="store both, or give --exposure T0 T1")
+        try:
+            s = np.ravel(self._f["frames/exposure_start"][...])
+            e = np.ravel(self._f["frames/exposure_end"][...])
+        except _H5_ERRORS as err:
+            raise self._read_error(err) from None
+        ok = len(s) == len(e) and s.dtype.kind in "iu" and e.dtype.kind in "iu"
+        bad = np.flatnonzero(e <= s) if ok else []
+        if not ok or len(bad):
+            what = (f"{len(s)} starts and {len(e)} ends" if len(s) != len(e) else
+                    f"types {s.dtype}/{e.dtype}, expected integer µs" if not ok else
+                    f"window {int(bad[0])} [{s[bad[0]]}, {e[bad[0]]}] µs is empty or reversed")
+            raise FormatError(f"frames/exposure_start/end: {what}", path=self.path,
+                              hint="repair the stored windows, or give --exposure T0 T1")
+        return [Exposure(int(a), int(b)) for a, b in zip(s, e, strict=True)]
 
     def frames(self) -> Iterator[Frame]:
         exposures = self.frame_exposures()
         for k in range(self.num_frames):
-            img = np.asarray(self._f["frames/blurry"][k], np.float32)
+            try:
+                img = np.asarray(self._f["frames/blurry"][k], np.float32)
+            except _H5_ERRORS as e:
+                raise self._read_error(e) from None
             if img.dtype.kind in "ui" or img.max(initial=0) > 1.0 + 1e-6:
                 img = img / (255.0 if img.max() <= 255 else 65535.0)
+            if img.shape[:2] != (self.height, self.width):
+                raise InputError(f"frame {k} is {img.shape[1]}x{img.shape[0]} but the events' "
+                                 f"sensor is {self.width}x{self.height}", path=self.path,
+                                 hint="store frames of the sensor size, or pass --sensor WxH")
             yield Frame(img, exposures[k] if k < len(exposures) else None, k,
                         f"{self.path.name}#frame{k}")
 
@@ -193,18 +277,24 @@ class HDF5Recording(Recording):
 
     @property
     def has_ground_truth(self) -> bool:
-        return "frames/sharp" in self._f
+        return self._has("frames/sharp")
 
     def ground_truth(self, k: int) -> np.ndarray:
         """(2N+1, H, W[, 3]) float32 latent frames of exposure k."""
         if not self.has_ground_truth:
             raise FormatError("holds no ground truth (frames/sharp)", path=self.path)
-        return np.asarray(self._f["frames/sharp"][k], np.float32)
+        try:
+            return np.asarray(self._f["frames/sharp"][k], np.float32)
+        except _H5_ERRORS as e:
+            raise self._read_error(e) from None
 
     def contrast(self, k: int) -> float | None:
-        if "frames/contrast" not in self._f:
+        if not self._has("frames/contrast"):
             return None
-        return float(self._f["frames/contrast"][k])
+        try:
+            return float(self._f["frames/contrast"][k])
+        except _H5_ERRORS as e:
+            raise self._read_error(e) from None
 
     def close(self) -> None:
         f = getattr(self, "_f", None)

@@ -1,4 +1,4 @@
-"""MATLAB ``.mat`` event files, read with scipy (v4–v7.2) or h5py (v7.3).
+"""MATLAB ``.mat`` event files: level 5 (v6, v7) parsed here with numpy, v7.3 read with h5py.
 
 Layouts understood:
 
@@ -25,6 +25,7 @@ Binned files (LEDVDI's ``event_bins``) hold no individual events and are refused
 
 from __future__ import annotations
 
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,10 @@ _P = ("p", "pol", "polarity", "polarities")
 _WINDOW = ("start_timestamp", "end_timestamp")
 
 
+#: hint for files that cannot be decoded
+_DAMAGED = "the file may be incomplete or damaged: copy it again or re-save it"
+
+
 def seconds_to_us(t: np.ndarray, unit: str | None) -> np.ndarray:
     """Times → int64 µs: floats are seconds and integers µs unless ``unit`` says otherwise.
 
@@ -51,18 +56,25 @@ def seconds_to_us(t: np.ndarray, unit: str | None) -> np.ndarray:
     """
     t = np.asarray(t)
     if t.dtype.kind not in "iuf":
-        raise InputError(f"times have type {t.dtype}, expected numbers")
+        raise InputError(f"times have type {t.dtype}, expected numbers",
+                         hint="store times as integer microseconds or float seconds")
     if unit is None:
         unit = "s" if t.dtype.kind == "f" else "us"
     if unit not in UNIT_SCALE_US:
         raise InputError(f"unknown time unit {unit!r}", hint="use s, ms, us or ns")
     scale = UNIT_SCALE_US[unit]
+    # beyond ±2**62 µs (≈146 000 years) is a unit mistake, and int64 would overflow
+    finite = t[np.isfinite(t)] if t.dtype.kind == "f" else t
+    if len(finite) and max(abs(float(finite.max())), abs(float(finite.min()))) * scale >= 2.0**62:
+        raise InputError(f"times up to {max(abs(float(finite.max())), abs(float(finite.min()))):g}"
+                         f" {unit} are out of range", hint="check --time-unit")
     if t.dtype.kind in "iu":
         t64 = t.astype(np.int64)
         return t64 // 1000 if unit == "ns" else t64 * int(scale)
     if len(t) and not np.isfinite(t).all():
         bad = int(np.flatnonzero(~np.isfinite(t))[0])
-        raise InputError(f"event {bad} has a non-finite time ({t[bad]})")
+        raise InputError(f"event {bad} has a non-finite time ({t[bad]})",
+                         hint="remove or repair the broken events")
     t = t.astype(np.float64)
     whole = np.floor(t)
     return (whole.astype(np.int64) * np.int64(round(scale)) if scale >= 1 else
@@ -81,28 +93,116 @@ def _load(path: Path, names: list[str] | None = None) -> dict[str, np.ndarray]:
                 keys = [k for k in f.keys() if isinstance(f[k], h5py.Dataset)]
                 keys = [k for k in keys if names is None or k in names]
                 return {k: np.asarray(f[k][()]).T for k in keys}
-        except OSError as e:
-            raise FormatError(f"not a readable MATLAB 7.3 file: {e}", path=path) from None
-    from . import require
-
-    sio = require("scipy.io", path=path)
+        except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+            raise FormatError(f"not a readable MATLAB 7.3 file: {e}", path=path,
+                              hint=_DAMAGED) from None
     try:
-        raw = sio.loadmat(str(path), variable_names=names)
-    except (ValueError, TypeError, OSError, EOFError, KeyError, NotImplementedError) as e:
-        raise FormatError(f"not a readable .mat file ({e}); truncated or corrupt?",
-                          path=path) from None
-    except Exception as e:  # noqa: BLE001 - scipy raises many kinds on damaged files
-        raise FormatError(f"not a readable .mat file ({type(e).__name__}: {e})",
-                          path=path) from None
-    return {k: v for k, v in raw.items()
-            if not k.startswith("__") and isinstance(v, np.ndarray) and v.dtype.kind in "iufb"}
+        return _read_v5(path.read_bytes(), names)
+    except _Damaged as e:
+        raise FormatError(f"not a readable .mat file ({e}); truncated or corrupt?", path=path,
+                          hint=_DAMAGED) from None
+
+
+# -- MAT-file level 5 (v6/v7), numeric variables ------------------------------------------------
+# Parsed here rather than by scipy.io.loadmat: scipy's compiled reader crashes the process
+# (SIGSEGV) on some damaged files, e.g. an unknown data type in a variable's header.
+
+#: MAT data types → numpy, for the data elements of numeric arrays
+_MI_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 9: "f8", 12: "i8",
+             13: "u8"}
+#: numeric MAT array classes (double, single, int8 … uint64); the others (cell, struct, char,
+#: sparse, objects) hold no events and are skipped
+_MX_CLASSES = frozenset(range(6, 16))
+_MI_MATRIX, _MI_COMPRESSED = 14, 15
+
+
+class _Damaged(Exception):
+    """The bytes do not follow the MAT-file level 5 layout."""
+
+
+def _elements(buf: bytes, pos: int, end: int, order: str):
+    """(type, data) of each data element in ``buf[pos:end]``."""
+    while pos + 8 <= end:
+        typ, nbytes = np.frombuffer(buf, order + "u4", 2, pos)
+        typ, nbytes = int(typ), int(nbytes)
+        if typ >> 16:  # small element: size in the upper half, data in the tag's second word
+            typ, nbytes, start = typ & 0xFFFF, typ >> 16, pos + 4
+            stop = start + nbytes
+            if nbytes > 4:
+                raise _Damaged(f"small element of {nbytes} bytes at byte {pos}")
+            nxt = pos + 8
+        else:
+            start = pos + 8
+            stop = start + nbytes
+            # compressed elements are not padded; the others end on an 8-byte boundary
+            nxt = stop if typ == _MI_COMPRESSED else start + -(-nbytes // 8) * 8
+        if stop > end:
+            raise _Damaged(f"element at byte {pos} runs past its end ({nbytes} bytes)")
+        yield typ, buf[start:stop]
+        pos = nxt
+    if pos < end and buf[pos:end].strip(b"\x00"):
+        raise _Damaged(f"{end - pos} stray bytes at byte {pos}")
+
+
+def _matrix(data: bytes, order: str) -> tuple[str, np.ndarray | None]:
+    """(name, array or None when not a real numeric array) of one miMATRIX element."""
+    parts = list(_elements(data, 0, len(data), order))
+    if (len(parts) < 3 or parts[0][0] != 6 or len(parts[0][1]) != 8 or parts[1][0] != 5
+            or len(parts[1][1]) % 4):
+        raise _Damaged("a variable header lacks its flags, dimensions or name")
+    flags = int(np.frombuffer(parts[0][1], order + "u4", 1)[0])
+    dims = np.frombuffer(parts[1][1], order + "i4")
+    name = parts[2][1].decode("latin-1")
+    if (dims < 0).any():
+        raise _Damaged(f"variable {name!r} has negative dimensions {dims.tolist()}")
+    mx, is_complex = flags & 0xFF, bool(flags & 0x800)
+    if mx not in _MX_CLASSES or is_complex:
+        return name, None
+    if len(parts) < 4 or parts[3][0] not in _MI_TYPES:
+        raise _Damaged(f"variable {name!r} has no numeric data")
+    raw = parts[3][1]
+    dtype = np.dtype(order + _MI_TYPES[parts[3][0]])
+    if len(raw) % dtype.itemsize:
+        raise _Damaged(f"variable {name!r}: {len(raw)} bytes of {dtype.name}")
+    values = np.frombuffer(raw, dtype)
+    if values.size != int(np.prod(dims.astype(np.int64))):
+        raise _Damaged(f"variable {name!r} holds {values.size} values for dimensions "
+                       f"{dims.tolist()}")
+    # in the type stored, as scipy.io.loadmat gives them (MATLAB stores whole doubles as ints)
+    return name, values.reshape(dims, order="F")
+
+
+def _read_v5(buf: bytes, names: list[str] | None) -> dict[str, np.ndarray]:
+    """Numeric variables of a level-5 MAT-file (as scipy.io.loadmat would give them)."""
+    if len(buf) < 128:
+        raise _Damaged("shorter than the 128-byte header")
+    order = {b"IM": "<", b"MI": ">"}.get(buf[126:128])
+    if order is None:
+        raise _Damaged("no byte-order mark in the header")
+    out: dict[str, np.ndarray] = {}
+    for typ, data in _elements(buf, 128, len(buf), order):
+        if typ == _MI_COMPRESSED:
+            try:
+                data = zlib.decompressobj().decompress(data)
+            except zlib.error as e:
+                raise _Damaged(f"compressed variable: {e}") from None
+            inner = list(_elements(data, 0, len(data), order))
+            if not inner:
+                raise _Damaged("empty compressed variable")
+            typ, data = inner[0]
+        if typ != _MI_MATRIX:
+            continue
+        name, array = _matrix(data, order)
+        if array is not None and (names is None or name in names):
+            out[name] = array
+    return out
 
 
 def _vector(data: dict[str, np.ndarray], name: str, path: Path) -> np.ndarray:
     v = np.asarray(data[name])
     if v.ndim > 2 or (v.ndim == 2 and min(v.shape) > 1):
         raise FormatError(f"variable {name!r} has shape {v.shape}, expected a vector",
-                          path=path)
+                          path=path, hint="store one value per event (1×N or N×1)")
     return v.ravel()
 
 
@@ -122,10 +222,15 @@ def read_mat_window(path: Path, options: ReadOptions | None = None) -> Exposure 
 def _window(data: dict[str, np.ndarray], path: Path, unit: str | None) -> Exposure | None:
     if not all(k in data for k in _WINDOW):
         return None
-    start, end = (seconds_to_us(_vector(data, k, path)[:1], unit)[0] for k in _WINDOW)
+    values = [_vector(data, k, path)[:1] for k in _WINDOW]
+    if any(len(v) == 0 for v in values):
+        raise FormatError("start_timestamp or end_timestamp is empty", path=path,
+                          hint="repair them, or give --exposure T0 T1")
+    start, end = (seconds_to_us(v, unit)[0] for v in values)
     if not end > start:
         raise FormatError(f"stored exposure window [{start}, {end}] µs is empty or reversed",
-                          path=path)
+                          path=path, hint="repair start_timestamp/end_timestamp, or give "
+                                          "--exposure T0 T1")
     return Exposure(int(start), int(end))
 
 
@@ -150,7 +255,7 @@ def read_mat(path: Path, options: ReadOptions) -> MemoryRecording:
         m = np.asarray(data[name])
         if m.ndim != 2 or 4 not in m.shape:
             raise FormatError(f"{name!r} has shape {m.shape}, expected N×4 (t, x, y, p)",
-                              path=path)
+                              path=path, hint="store the events as an N×4 matrix t, x, y, p")
         m = m if m.shape[1] == 4 else m.T
         cols = dict(zip("txyp", m.T, strict=True))
     elif all(_first(data, names) for names in (_T, ("x",), ("y",), _P)):
@@ -165,13 +270,11 @@ def read_mat(path: Path, options: ReadOptions) -> MemoryRecording:
     x, y = cols["x"], cols["y"]
     if options.one_based:
         x, y = x - 1, y - 1
-    width = height = None
-    if options.sensor:
-        width, height = options.sensor
-    elif len(t_us):
-        warnings.append(f"{path.name} stores no sensor size; using {int(np.max(x)) + 1}x"
-                        f"{int(np.max(y)) + 1} from the largest coordinates (pass --sensor WxH)")
+    width, height = options.sensor or (None, None)
     stream = make_stream(x, y, t_us, cols["p"], width, height, source=str(path))
+    if not options.sensor and len(stream):
+        warnings.append(f"{path.name} stores no sensor size; using {stream.width}x"
+                        f"{stream.height} from the largest coordinates (pass --sensor WxH)")
     window = _window(data, path, options.time_unit)
     return MemoryRecording(stream, path, "mat", windows=[window] if window else [],
                            warnings=warnings)

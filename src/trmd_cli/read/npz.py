@@ -11,6 +11,7 @@ Pickled (object) arrays are refused: loading a pickle can run code.
 from __future__ import annotations
 
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,10 @@ _KEYSETS = (("x", "y", "t", "p"), ("xs", "ys", "ts", "ps"), ("x", "y", "timestam
             ("x", "y", "ts", "p"), ("x", "y", "t", "pol"))
 
 
+#: hint for files that cannot be decoded
+_DAMAGED = "the file may be incomplete or damaged: copy it again or re-save it"
+
+
 def _load(path: Path):
     try:
         return np.load(path, allow_pickle=False)
@@ -34,9 +39,14 @@ def _load(path: Path):
             raise FormatError("holds pickled objects, which trmd refuses to load (they can "
                               "run code)", path=path,
                               hint="re-save the arrays with numeric dtypes (np.savez)") from None
-        raise FormatError(f"not a valid NumPy file: {e}", path=path) from None
+        raise FormatError(f"not a valid NumPy file: {_first_line(e)}", path=path,
+                          hint=_DAMAGED) from None
     except (zipfile.BadZipFile, OSError, EOFError) as e:
-        raise FormatError(f"cannot be read, truncated or corrupt ({e})", path=path) from None
+        raise FormatError(f"cannot be read, truncated or corrupt ({_first_line(e)})", path=path,
+                          hint=_DAMAGED) from None
+    except Exception as e:  # noqa: BLE001 - numpy's header parser fails in many ways on damage
+        raise FormatError(f"cannot be read ({type(e).__name__}: {_first_line(e)})", path=path,
+                          hint=_DAMAGED) from None
 
 
 def _get(npz, key: str, path: Path) -> np.ndarray:
@@ -46,10 +56,20 @@ def _get(npz, key: str, path: Path) -> np.ndarray:
         if "pickle" in str(e).lower():
             raise FormatError(f"key '{key}' holds pickled objects, which trmd refuses to load",
                               path=path, hint="re-save it with a numeric dtype") from None
-        raise FormatError(f"key '{key}' cannot be read: {e}", path=path) from None
-    except (zipfile.BadZipFile, OSError, EOFError, KeyError) as e:
-        raise FormatError(f"key '{key}' cannot be read, truncated or corrupt ({e})",
-                          path=path) from None
+        raise FormatError(f"key '{key}' cannot be read: {_first_line(e)}", path=path,
+                          hint=_DAMAGED) from None
+    except (zipfile.BadZipFile, OSError, EOFError, KeyError, zlib.error) as e:
+        raise FormatError(f"key '{key}' cannot be read, truncated or corrupt ({_first_line(e)})",
+                          path=path, hint=_DAMAGED) from None
+    except Exception as e:  # noqa: BLE001 - numpy's header parser fails in many ways on damage
+        raise FormatError(f"key '{key}' cannot be read ({type(e).__name__}: {_first_line(e)})",
+                          path=path, hint=_DAMAGED) from None
+
+
+def _first_line(e: Exception, limit: int = 120) -> str:
+    # numpy quotes whole damaged headers: keep the message to one short line
+    text = str(e).splitlines()[0] if str(e) else type(e).__name__
+    return text if len(text) <= limit else text[:limit] + "…"
 
 
 def _structured_columns(arr: np.ndarray) -> dict[str, np.ndarray] | None:
@@ -104,18 +124,48 @@ def read_npz(path: Path, options: ReadOptions) -> MemoryRecording:
                               path=path, hint="expected keys x, y, t, p (or xs, ys, ts, ps)")
         width = height = None
         if "width" in keys and "height" in keys:
-            width, height = int(_get(npz, "width", path)), int(_get(npz, "height", path))
+            width = _size(_get(npz, "width", path), "width", path)
+            height = _size(_get(npz, "height", path), "height", path)
         elif "sensor_size" in keys:
             size = np.ravel(_get(npz, "sensor_size", path))
-            width, height = int(size[0]), int(size[1])
+            if len(size) < 2:
+                raise FormatError(f"sensor_size holds {len(size)} value(s), expected 2 (W, H)",
+                                  path=path, hint="pass --sensor WxH")
+            width, height = (_size(v, name, path)
+                             for v, name in zip(size[:2], ("width", "height"), strict=True))
         windows = []
         if "exposure_start" in keys and "exposure_end" in keys:
-            s = to_microseconds(np.ravel(_get(npz, "exposure_start", path)), options.time_unit)
-            e = to_microseconds(np.ravel(_get(npz, "exposure_end", path)), options.time_unit)
-            if len(s) != len(e):
-                raise FormatError("exposure_start and exposure_end differ in length", path=path)
-            windows = [Exposure(int(a), int(b)) for a, b in zip(s, e)]
+            windows = _windows(_get(npz, "exposure_start", path), _get(npz, "exposure_end", path),
+                               options, path)
     return _build(cols, path, options, "npz", width, height, windows)
+
+
+def _size(value: np.ndarray, name: str, path: Path) -> int:
+    v = np.asarray(value)
+    if v.size != 1 or v.dtype.kind not in "iuf" or not float(v.ravel()[0]).is_integer():
+        raise FormatError(f"'{name}' is {v.ravel()[:4].tolist()}, expected one whole number",
+                          path=path, hint="pass --sensor WxH")
+    return int(v.ravel()[0])
+
+
+def _windows(start: np.ndarray, end: np.ndarray, options: ReadOptions,
+             path: Path) -> list[Exposure]:
+    """Stored exposure windows, checked: same count, finite, each end after its start."""
+    try:
+        s = to_microseconds(np.ravel(start), options.time_unit)
+        e = to_microseconds(np.ravel(end), options.time_unit)
+    except InputError as err:
+        raise FormatError(f"exposure_start/exposure_end: {err.detail}", path=path,
+                          hint="repair the stored windows, or give --exposure T0 T1") from None
+    if len(s) != len(e):
+        raise FormatError(f"exposure_start has {len(s)} values but exposure_end {len(e)}",
+                          path=path, hint="store one start and one end per window")
+    bad = np.flatnonzero(e <= s)
+    if len(bad):
+        i = int(bad[0])
+        raise FormatError(f"stored exposure window {i} [{s[i]}, {e[i]}] µs is empty or reversed",
+                          path=path, hint="repair the stored windows, or give --exposure T0 T1")
+    return [Exposure(int(a), int(b)) for a, b in zip(s, e, strict=True)]
 
 
 def read_npy(path: Path, options: ReadOptions) -> MemoryRecording:

@@ -71,6 +71,10 @@ _EVT2_VALID = np.zeros(16, bool)
 _EVT2_VALID[list(_EVT2_TYPES)] = True
 
 
+#: hint for files that cannot be decoded
+_DAMAGED = "the file may be incomplete or damaged: copy it again or re-export the recording"
+
+
 @dataclass(frozen=True)
 class PropheseeHeader:
     """The ``%`` header of a .raw/.dat file.
@@ -177,7 +181,8 @@ def _whole_records(path: Path, offset: int, size: int, what: str) -> int:
     """Number of whole records after ``offset``; a partial last record means truncation."""
     total = os.path.getsize(path)
     if total < offset:
-        raise FormatError("the file ends inside its header (truncated?)", path=path)
+        raise FormatError("the file ends inside its header (truncated?)", path=path,
+                          hint=_DAMAGED)
     n, rest = divmod(total - offset, size)
     if rest:
         raise FormatError(
@@ -212,7 +217,8 @@ def decode_evt2_words(words: np.ndarray, state: tuple[int, int, int] = (-1, 0, -
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise FormatError(f"word {first_word + i} has type 0x{typ[i]:X}, which EVT 2.0 does "
-                          "not define (corrupt file, or not EVT 2.0?)", path=path)
+                          "not define (corrupt file, or not EVT 2.0?)", path=path,
+                          hint=_DAMAGED)
     last_raw, wraps, time_high = state
     is_th = typ == 0x8
     th_raw = (w[is_th] & 0x0FFFFFFF).astype(np.int64)
@@ -250,7 +256,8 @@ class Evt2Recording(ChunkedRecording):
     def __init__(self, path: Path, options: ReadOptions, chunk_words: int = EVT2_CHUNK_WORDS):
         header = _read_header(path)
         if header.encoding not in (None, "evt2"):
-            raise FormatError(f"the header says {header.encoding}, not EVT 2.0", path=path)
+            raise FormatError(f"the header says {header.encoding}, not EVT 2.0", path=path,
+                              hint="check the '% evt' / '% format' header lines")
         warnings: list[str] = []
         _ignore_time_unit(options, "EVT 2.0", warnings)
         width, height = _sensor(header, options, warnings)
@@ -318,7 +325,8 @@ def decode_dat_records(records: np.ndarray, state: tuple[int, int] = (-1, 0), *,
     if len(pol) and pol.max() > 1:
         i = int(np.flatnonzero(pol > 1)[0])
         raise FormatError(f"record {first_record + i} has polarity {int(pol[i])}, expected 0 "
-                          "or 1 (corrupt file?)", path=path)
+                          "or 1 (corrupt file?)", path=path,
+                          hint=_DAMAGED)
     x = (d & 0x3FFF).astype(np.uint16)
     y = ((d >> 14) & 0x3FFF).astype(np.uint16)
     p = (pol.astype(np.int8) * 2 - 1).astype(np.int8)
@@ -338,13 +346,14 @@ class DatRecording(ChunkedRecording):
         with open(path, "rb") as fh:
             fh.seek(header.data_offset)
             kind = fh.read(2)
-        if len(kind) < 2:
+        if len(kind) < 2 or kind.startswith(b"%"):
             raise FormatError("the file has a header but no event type/size bytes (truncated?)",
-                              path=path)
+                              path=path, hint=_DAMAGED)
         ev_type, ev_size = kind[0], kind[1]
         if ev_size != 8:
             raise FormatError(f"event size {ev_size} bytes, expected 8 (corrupt, or not a CD "
-                              ".dat file?)", path=path)
+                              ".dat file?)", path=path,
+                              hint=_DAMAGED)
         if ev_type not in (0x00, 0x0C):
             raise FormatError(f"event type 0x{ev_type:02X} is not CD events (0x0C)", path=path,
                               hint="only .dat files of CD (change detection) events are read")
@@ -388,7 +397,8 @@ class Evt3Recording(ChunkedRecording):
         self._evt3 = require("evt3", path=path)
         header = _read_header(path)
         if header.encoding not in (None, "evt3"):
-            raise FormatError(f"the header says {header.encoding}, not EVT 3.0", path=path)
+            raise FormatError(f"the header says {header.encoding}, not EVT 3.0", path=path,
+                              hint="check the '% evt' / '% format' header lines")
         warnings: list[str] = []
         _ignore_time_unit(options, "EVT 3.0", warnings)
         width, height = _sensor(header, options, warnings)
@@ -410,7 +420,8 @@ class Evt3Recording(ChunkedRecording):
                 yield Chunk(k, np.asarray(ev.x, np.uint16), np.asarray(ev.y, np.uint16), t,
                             (np.asarray(ev.p).astype(np.int8) * 2 - 1).astype(np.int8))
         except (OSError, ValueError, RuntimeError) as e:
-            raise FormatError(f"EVT 3.0 decoding failed: {e}", path=self.path) from None
+            raise FormatError(f"EVT 3.0 decoding failed: {e}", path=self.path,
+                              hint=_DAMAGED) from None
 
 
 def read_evt3(path: Path, options: ReadOptions) -> Evt3Recording:

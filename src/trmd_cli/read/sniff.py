@@ -38,11 +38,13 @@ def detect_format(path: str | Path) -> str:
     if not path.exists():
         raise InputError("file not found", path=path, hint="check the path")
     if path.is_dir():
-        raise InputError("is a folder, expected an event file", path=path)
+        raise InputError("is a folder, expected an event file", path=path,
+                         hint="give the event file inside it")
     with open(path, "rb") as fh:
         head = fh.read(4096)
     if not head:
-        raise FormatError("file is empty", path=path)
+        raise FormatError("file is empty", path=path,
+                          hint="the copy may be incomplete: copy the recording again")
     if head.startswith(b"\x89HDF\r\n\x1a\n") or (head.startswith(b"MATLAB 7.3") and len(head) > 520
                                                and head[512:520] == b"\x89HDF\r\n\x1a\n"):
         return "mat" if head.startswith(b"MATLAB") else "hdf5"
@@ -64,7 +66,8 @@ def detect_format(path: str | Path) -> str:
     ext = _EXT.get(path.suffix.lower())
     if ext and ext != "text":
         raise FormatError(f"has the extension {path.suffix} but not the content of a "
-                          f"{FORMATS[ext]} file (truncated or corrupt?)", path=path)
+                          f"{FORMATS[ext]} file (truncated or corrupt?)", path=path,
+                          hint="copy the file again, or check that it is an event file")
     if _looks_like_text(head):
         return "text"
     raise FormatError("unknown event file format", path=path,
@@ -87,19 +90,27 @@ def _prophesee_format(path: Path, head: bytes) -> str | None:
         raise FormatError(f"Prophesee {encoding.upper()} is not supported", path=path,
                           hint="record or convert to EVT 2.0 / EVT 3.0 (.raw) or .dat")
     body = head[header.data_offset:]
+    if suffix == ".dat" and header.fields and (len(body) < 2 or body.startswith(b"%")):
+        return "dat"  # a .dat cut inside or right after its '%' header, not a text table
     if suffix == ".dat":
         # a plain-text table with '%' comments that happens to end in .dat
         return "text" if body and _looks_like_text(body) else "dat"
     if suffix == ".raw":
-        raise FormatError("Prophesee .raw with an unknown event format", path=path,
-                          hint="only EVT 2.0 and EVT 3.0 are supported")
+        raise FormatError("Prophesee .raw whose header names no known event format "
+                          "(cut short?)", path=path,
+                          hint="only EVT 2.0 and EVT 3.0 are supported; a cut copy needs copying "
+                               "again")
     if header.width and body and not _looks_like_text(body):
         return "dat"
     return None
 
 
+#: bytes never found in a text event file (C0 controls other than tab, newline, return)
+_BINARY = bytes(c for c in range(32) if c not in (9, 10, 13))
+
+
 def _looks_like_text(head: bytes) -> bool:
-    if b"\x00" in head:
+    if len(head.translate(None, _BINARY)) != len(head):
         return False
     try:
         head.decode("utf-8")

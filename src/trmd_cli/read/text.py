@@ -51,13 +51,17 @@ def read_text(path: Path, options: ReadOptions) -> MemoryRecording:
         if len(fields) == 2 and first_data is None and i == skip:
             # E2VID: "W H" on the first line
             if sensor is None:
-                sensor = (int(float(fields[0])), int(float(fields[1])))
+                w, h = (float(f) for f in fields)
+                if not (w.is_integer() and h.is_integer() and 0 < w <= 65535 and 0 < h <= 65535):
+                    raise FormatError(f"the first line '{' '.join(fields)}' is not a sensor size "
+                                      "W H", path=path, hint="fix that line or pass --sensor WxH")
+                sensor = (int(w), int(h))
             skip = i + 1
             continue
         first_data = fields
         break
     if first_data is None:
-        raise FormatError("no event lines found", path=path,
+        raise FormatError("no event lines found (truncated, or not an event file?)", path=path,
                           hint="expected lines like '0.000123 45 67 1' (t x y p)")
     columns = options.columns or ("t", "x", "y", "p")
     if len(first_data) < len(columns):
@@ -69,10 +73,13 @@ def read_text(path: Path, options: ReadOptions) -> MemoryRecording:
         data = np.loadtxt(path, comments="#", delimiter=delim, skiprows=skip, ndmin=2,
                           usecols=range(len(columns)), dtype=np.float64)
     except ValueError as e:
-        line = re.search(r"line (\d+)", str(e))
-        where = f" near line {line[1]}" if line else ""
-        raise FormatError(f"malformed event line{where}: {str(e).splitlines()[0]}", path=path,
-                          hint="every line needs numbers t x y p") from None
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        m = re.search(r"\b(line|row) (\d+)", msg)
+        # numpy counts data rows from 0 after the skipped header
+        where = "" if not m else f" near line {int(m[2]) + (skip + 1 if m[1] == 'row' else 0)}"
+        raise FormatError(f"malformed event line{where}: {msg[:160]}", path=path,
+                          hint="every line needs numbers t x y p; a short last line means the "
+                               "copy is incomplete (copy it again, or delete that line)") from None
     cols = {name: data[:, i] for i, name in enumerate(columns) if name != "_"}
     t_field = first_data[columns.index("t")]
     unit = options.time_unit

@@ -24,12 +24,17 @@ def to_microseconds(t: np.ndarray, unit: str | None) -> np.ndarray:
     if unit not in UNIT_SCALE_US:
         raise InputError(f"unknown time unit {unit!r}", hint="use s, ms, us or ns")
     if t.dtype.kind not in "iuf":
-        raise InputError(f"times have type {t.dtype}, expected numbers")
+        raise InputError(f"times have type {t.dtype}, expected numbers",
+                         hint="store times as integer microseconds or float seconds")
     if t.dtype.kind == "f" and len(t) and not np.isfinite(t).all():
         bad = int(np.flatnonzero(~np.isfinite(t))[0])
         raise InputError(f"event {bad} has a non-finite time ({t[bad]})",
                          hint="remove or repair the broken rows")
     scale = UNIT_SCALE_US[unit]
+    # ±2**62 µs is ≈146 000 years: beyond it a value is a unit mistake, and int64 overflows
+    top = max(abs(float(t.max())), abs(float(t.min()))) if len(t) else 0.0
+    if top * scale >= 2.0**62:
+        raise InputError(f"times up to {top:g} {unit} are out of range", hint="check --time-unit")
     if unit == "us" and t.dtype.kind in "iu":
         return t.astype(np.int64, copy=False)
     if unit == "ns" and t.dtype.kind in "iu":
