@@ -1,0 +1,212 @@
+"""`trmd deblur`: blurry frame(s) + events → 2N+1 sharp frames per exposure.
+
+Inputs (see :func:`trmd_cli.pipeline.open_inputs`)::
+
+    trmd deblur BLURRY.png EVENTS -o OUT/            # OUT/frame_000.png … sharp.png …
+    trmd deblur RECORDING.aedat4|.h5 -o OUT/         # OUT/<frame>/… for every stored frame
+    trmd deblur IMAGES_DIR EVENTS|EVENTS_DIR -o OUT/ # frames folder, paired by frame number
+
+A colour blurry frame with mono events is deblurred per channel with the same event ratio
+(events carry no colour). Output values above 1 are clipped when written (reported).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .boundary import err, guarded, progress_enabled, warn
+from .options import (
+    Columns,
+    Device,
+    Exposure,
+    OneBased,
+    Overwrite,
+    Sensor,
+    Threads,
+    TimeUnit,
+    parse_duration_us,
+    read_options,
+)
+
+#: Typer can only show a literal default; keep it in sync with pipeline.DEFAULT_METHOD
+_DEFAULT_METHOD_HELP = "edi"
+
+Method = Annotated[str | None, typer.Option(
+    "--method", help="edi (model-based, no weights) or trmd (learned residuals). "
+    f"Default: {_DEFAULT_METHOD_HELP}.")]
+NOpt = Annotated[int | None, typer.Option(
+    "--n", min=1, max=16, help="Latent frames 2N+1 per exposure (default 3 → 7 frames; TRMD: "
+    "the weights' N).")]
+Contrast = Annotated[str, typer.Option(
+    "--contrast", help="EDI contrast threshold c, or 'auto' to estimate it per frame.")]
+TimeOffset = Annotated[str | None, typer.Option(
+    "--time-offset", help="Shift the exposure window(s) relative to the events, e.g. -40ms "
+    "(real DAVIS data often needs tens of ms).")]
+Weights = Annotated[Path | None, typer.Option("--weights", help="TRMD weights (.safetensors)."
+                                                 " Default: the shipped weights.")]
+HotPixels = Annotated[bool, typer.Option("--hot-pixels/--keep-hot-pixels",
+                                         help="Ignore the events of hot pixels (default on).")]
+BitDepth = Annotated[int, typer.Option("--bit-depth", help="PNG bit depth: 8 or 16.")]
+
+
+def parse_contrast(text: str) -> float | None:
+    """``"auto"`` → None; a positive number → float."""
+    from ..errors import InputError
+
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise InputError(f"--contrast {text!r} is not a number or 'auto'",
+                         hint="e.g. --contrast 0.25, or --contrast auto") from None
+    if not (value > 0 and value < 10):
+        raise InputError(f"--contrast {text} must be a positive number (typically 0.1–0.5)")
+    return value
+
+
+def deblur(
+    inputs: Annotated[list[Path], typer.Argument(
+        help="BLURRY EVENTS, or RECORDING, or IMAGES_DIR EVENTS|EVENTS_DIR.",
+        show_default=False)],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Output folder.")],
+    method: Method = None,
+    n: NOpt = None,
+    exposure: Exposure = None,
+    contrast: Contrast = "auto",
+    time_offset: TimeOffset = None,
+    compare: Annotated[bool, typer.Option(
+        "--compare", help="Also write compare.png (blurry | sharp).")] = False,
+    video: Annotated[Path | None, typer.Option(
+        "--video", help="Also write the latent frames as a video (.mp4 or .gif).")] = None,
+    fps: Annotated[float, typer.Option("--fps", help="Playback rate of --video.")] = 10.0,
+    bit_depth: BitDepth = 8,
+    hot_pixels: HotPixels = True,
+    weights: Weights = None,
+    device: Device = "auto",
+    threads: Threads = None,
+    time_unit: TimeUnit = None,
+    sensor: Sensor = None,
+    columns: Columns = None,
+    one_based: OneBased = False,
+    overwrite: Overwrite = False,
+) -> None:
+    """Deblur: write 2N+1 sharp frames per blurry frame, plus sharp.png, timestamps.txt and
+    meta.json (method, N, c used, weights hash, inputs)."""
+    from rich.progress import Progress
+
+    from .. import __version__
+    from ..errors import InputError
+    from ..pipeline import DEFAULT_METHOD, MethodConfig, deblur_frames, make_method, open_inputs
+    from ..pipeline import write_result_folder as write_folder
+    from ..video import VideoWriter, check_video_path
+    from ..write import atomic_dir, check_output
+
+    # every option is checked before any file is opened or written
+    if len(inputs) > 2:
+        raise InputError(f"deblur takes one or two inputs, got {len(inputs)}",
+                         hint="for several images use a frames folder, or `trmd hfr`")
+    config = MethodConfig(method=(method or DEFAULT_METHOD).lower(), n=n,
+                          contrast=parse_contrast(contrast), hot_pixels=hot_pixels,
+                          weights=weights, device=device, threads=threads)
+    if bit_depth not in (8, 16):
+        raise InputError(f"--bit-depth must be 8 or 16, got {bit_depth}")
+    offset = parse_duration_us(time_offset) if time_offset else 0
+    check_output(output, overwrite)
+    if output.exists() and not output.is_dir():
+        raise InputError("the output exists and is not a folder", path=output,
+                         hint="choose a folder path for -o")
+    if video is not None:
+        check_video_path(video)
+        check_output(video, overwrite)
+
+    with open_inputs(inputs, read_options(columns, one_based, time_unit, sensor),
+                     exposure=exposure, offset_us=offset) as ins:
+        for w in ins.warnings:
+            warn(w)
+        est = make_method(config)
+        meta = {
+            "tool": f"trmd {__version__}",
+            "method": est.name,
+            "n": est.n,
+            "weights_hash": est.weights_hash,
+            "inputs": ins.paths,
+            "time_offset_us": offset,
+            "contrast_mode": "given" if config.contrast is not None else "auto",
+            "bit_depth": bit_depth,
+        }
+        summary: list[dict] = []
+        clipped: list[float] = []
+        vw = VideoWriter(video, fps) if video is not None else None
+        try:
+            with atomic_dir(output) as tmp, Progress(
+                    console=err, disable=not progress_enabled() or ins.single,
+                    transient=True) as bar:
+                task = bar.add_task("deblurring", total=len(ins.source))
+                for res in deblur_frames(ins.source, est):
+                    for w in res.warnings:
+                        warn(w)
+                    folder = tmp
+                    if not ins.single:
+                        folder = tmp / _folder_name(res.name, res.index)
+                        folder.mkdir()
+                    info = write_folder(folder, res, bit_depth=bit_depth, compare=compare,
+                                        meta=meta)
+                    summary.append(info)
+                    clipped.append(info["clipped_fraction"])
+                    if vw is not None:
+                        for img in res.frames:
+                            vw.append(img)
+                    bar.advance(task)
+                if not summary:
+                    raise InputError("no frame to deblur", hint="check the inputs")
+                if not ins.single:
+                    from ..write import write_json
+
+                    write_json(tmp / "meta.json", {**meta, "frames": summary})
+                if vw is not None:
+                    vw.close()
+                    vw = None
+        finally:
+            if vw is not None:
+                vw.abort()
+
+    _report(summary, clipped, est.name, est.n, output, video, ins.single)
+
+
+def _folder_name(name: str, index: int) -> str:
+    safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name).strip(".")
+    return safe or f"{index:06d}"
+
+
+def _report(summary: list[dict], clipped: list[float], method: str, n: int, output: Path,
+            video: Path | None, single: bool) -> None:
+    import numpy as np
+
+    used = [s["contrast"] for s in summary if s["contrast"] is not None]
+    auto = any(s["contrast_estimated"] for s in summary)
+    if used:
+        kind = "estimated" if auto else "given"
+        if len(used) == 1:
+            typer.echo(f"contrast threshold c = {used[0]:.3f} ({kind})")
+        else:
+            typer.echo(f"contrast threshold c ({kind}, per frame): median {np.median(used):.3f}, "
+                       f"range {min(used):.3f}–{max(used):.3f}; each frame's value is in its "
+                       "meta.json")
+    frac = float(np.mean(clipped)) if clipped else 0.0
+    if frac > 0:
+        warn(f"{100 * frac:.2f} % of output values were above 1 and were clipped to white")
+    passed = sum(s["passthrough"] for s in summary)
+    frames = summary[0]["frames"] if summary else 2 * n + 1
+    what = "1 frame" if single else f"{len(summary)} frames"
+    extra = f" ({passed} passed through without events)" if passed else ""
+    typer.echo(f"wrote {output}: {what} × {frames} latent frames ({method}, N={n}){extra}")
+    if video is not None:
+        typer.echo(f"wrote {video}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command(name="deblur")(guarded(deblur))

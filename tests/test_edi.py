@@ -1,0 +1,205 @@
+"""EDI (trmd_cli.edi): analytic single-pixel cases, the defining mean property, binned events,
+event propagation, hot pixels, colour, and PSNR on simulated frames with known threshold."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from trmd_cli.edi import (
+    EdiBins,
+    EdiEvents,
+    edi_from_bins,
+    edi_latent,
+    hot_pixel_mask,
+    propagate,
+    signed_counts,
+)
+from trmd_cli.errors import InputError, ShapeError
+from trmd_cli.events import EventStream, Exposure, make_stream
+
+LN2 = float(np.log(2.0))
+
+
+def one_pixel(times, pols, width=1, height=1, x=0, y=0) -> EventStream:
+    n = len(times)
+    return make_stream(np.full(n, x), np.full(n, y), np.asarray(times, np.int64),
+                       np.asarray(pols), width, height)
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(10 * np.log10(1.0 / np.mean((np.clip(a, 0, 1) - b) ** 2)))
+
+
+# --------------------------------------------------------------------------------------------
+# analytic
+
+
+def test_single_pixel_steps_match_hand_computation():
+    # +1 at 25, +1 at 50, −1 at 75 in [0, 100] with c = ln 2: exp(c·S) = 2^S = 1, 2, 4, 2 over
+    # four quarter-intervals, so J = (1 + 2 + 4 + 2) / 4 = 2.25 and L(t) = B · 2^S(t) / 2.25
+    ev = one_pixel([25, 50, 75], [1, 1, -1])
+    b = np.array([[0.45]], np.float32)
+    lat = edi_latent(b, ev, Exposure(0, 100), [0, 24, 25, 60, 75, 100], LN2)
+    expected = 0.45 / 2.25 * np.array([1, 1, 2, 4, 2, 2])
+    np.testing.assert_allclose(lat[:, 0, 0], expected, rtol=1e-6)
+
+
+def test_reference_free_and_mean_equals_blurry(rng):
+    # the defining property: the latent frames average back to the blurry frame
+    ev = make_stream(rng.integers(0, 5, 400), rng.integers(0, 4, 400),
+                     np.sort(rng.integers(0, 10_000, 400)), rng.integers(0, 2, 400), 5, 4)
+    b = rng.uniform(0.1, 0.9, (4, 5)).astype(np.float32)
+    exposure = Exposure(0, 10_000)
+    t = (np.arange(20_000) + 0.5) * 0.5  # midpoints of 0.5 µs cells; events sit on whole µs
+    lat = edi_latent(b, ev, exposure, t, 0.3)
+    np.testing.assert_allclose(lat.mean(axis=0), b, rtol=2e-3)
+
+
+def test_no_events_gives_the_blurry_frame():
+    ev = EventStream.empty(3, 2)
+    b = np.full((2, 3), 0.3, np.float32)
+    lat = edi_latent(b, ev, Exposure(0, 50), [0, 25, 50], 0.2)
+    np.testing.assert_allclose(lat, np.broadcast_to(b, (3, 2, 3)))
+
+
+def test_events_outside_the_window_are_ignored():
+    inside = one_pixel([40, 60], [1, -1])
+    around = one_pixel([5, 40, 60, 95], [1, 1, -1, -1])
+    b = np.array([[0.5]], np.float32)
+    w = Exposure(10, 90)
+    np.testing.assert_allclose(edi_latent(b, inside, w, [10, 50, 90], 0.4),
+                               edi_latent(b, around, w, [10, 50, 90], 0.4))
+
+
+def test_colour_frame_uses_the_same_ratio_per_channel(rng):
+    ev = make_stream(rng.integers(0, 6, 300), rng.integers(0, 4, 300),
+                     np.sort(rng.integers(0, 1000, 300)), rng.integers(0, 2, 300), 6, 4)
+    rgb = rng.uniform(0, 1, (4, 6, 3)).astype(np.float32)
+    lat = edi_latent(rgb, ev, Exposure(0, 1000), [0, 500, 1000], 0.25)
+    assert lat.shape == (3, 4, 6, 3)
+    for ch in range(3):
+        mono = edi_latent(rgb[..., ch], ev, Exposure(0, 1000), [0, 500, 1000], 0.25)
+        np.testing.assert_allclose(lat[..., ch], mono, rtol=1e-6)
+
+
+def test_size_and_contrast_errors():
+    ev = one_pixel([1], [1], width=4, height=3)
+    with pytest.raises(InputError, match="4x3"):
+        edi_latent(np.zeros((3, 5), np.float32), ev, Exposure(0, 10), [5], 0.2)
+    with pytest.raises(ShapeError):
+        edi_latent(np.zeros((3, 4, 2), np.float32), ev, Exposure(0, 10), [5], 0.2)
+    for c in (0.0, -0.1, float("nan")):
+        with pytest.raises(InputError, match="contrast"):
+            edi_latent(np.zeros((3, 4), np.float32), ev, Exposure(0, 10), [5], c)
+
+
+# --------------------------------------------------------------------------------------------
+# bins
+
+
+def test_bins_single_bin_matches_the_linear_model_integral():
+    # one bin, +2 events: log L rises linearly by 2c, J = (e^{2c} − 1) / (2c)
+    c = 0.3
+    bins = np.full((1, 1, 1), 2.0)
+    b = np.array([[0.6]], np.float32)
+    lat = edi_from_bins(b, bins, [0.0, 0.5, 1.0], c)
+    j = np.expm1(2 * c) / (2 * c)
+    np.testing.assert_allclose(lat[:, 0, 0], 0.6 / j * np.exp(c * np.array([0, 1, 2])),
+                               rtol=1e-6)
+
+
+def test_bins_mean_equals_blurry_and_partial_exposure(rng):
+    bins = rng.integers(-3, 4, (6, 3, 4)).astype(np.float64)
+    b = rng.uniform(0.1, 0.9, (3, 4)).astype(np.float32)
+    t = (np.arange(6000) + 0.5) / 6000
+    np.testing.assert_allclose(edi_from_bins(b, bins, t, 0.2).mean(0), b, rtol=1e-4)
+    # the blurry frame integrates only [1/6, 5/6] of the span
+    inner = (1 / 6) + (np.arange(4000) + 0.5) / 4000 * (4 / 6)
+    lat = edi_from_bins(b, bins, inner, 0.2, exposure=(1 / 6, 5 / 6))
+    np.testing.assert_allclose(lat.mean(0), b, rtol=1e-4)
+
+
+def test_bins_agree_with_events_when_events_sit_mid_bin():
+    # events exactly at bin centres vs the linear model: the same to first order in c
+    ev = one_pixel([150, 450, 750], [1, 1, -1])
+    bins = np.array([0, 1, 0, 0, 1, 0, 0, -1, 0, 0], np.float64).reshape(10, 1, 1)
+    b = np.array([[0.5]], np.float32)
+    a = edi_latent(b, ev, Exposure(0, 1000), [0, 500, 1000], 0.05)
+    z = edi_from_bins(b, bins, [0.0, 0.5, 1.0], 0.05)
+    np.testing.assert_allclose(a, z, rtol=1e-4)
+
+
+def test_bins_shape_errors():
+    with pytest.raises(ShapeError):
+        EdiBins.build(np.zeros((4, 5)))
+    with pytest.raises(InputError):
+        EdiBins.build(np.zeros((4, 5, 6)), exposure=(0.5, 0.2))
+
+
+# --------------------------------------------------------------------------------------------
+# propagation, hot pixels
+
+
+def test_signed_counts_forward_and_backward():
+    ev = one_pixel([10, 20, 30, 40], [1, 1, -1, 1])
+    s = signed_counts(ev, 20, [5, 10, 20, 25, 30, 45])
+    # S(t) − S(20): S = 0 before 10, 1 at 10, 2 at 20, 1 at 30, 2 at 40
+    np.testing.assert_allclose(s[:, 0, 0], [-2, -1, 0, 0, -1, 0])
+
+
+def test_propagate_matches_edi_inside_the_window(rng):
+    ev = make_stream(rng.integers(0, 8, 600), rng.integers(0, 6, 600),
+                     np.sort(rng.integers(0, 5000, 600)), rng.integers(0, 2, 600), 8, 6)
+    b = rng.uniform(0.2, 0.8, (6, 8)).astype(np.float32)
+    w = Exposure(0, 5000)
+    lat = edi_latent(b, ev, w, [1000, 2500, 4000], 0.2)
+    fwd = propagate(lat[0], ev, 1000, [2500, 4000], 0.2)
+    back = propagate(lat[2], ev, 4000, [1000, 2500], 0.2)
+    np.testing.assert_allclose(fwd, lat[1:], rtol=1e-5)
+    np.testing.assert_allclose(back, lat[:2], rtol=1e-5)
+
+
+def test_hot_pixel_is_found_and_ignored(rng):
+    n = 3000
+    x = rng.integers(0, 40, n)
+    y = rng.integers(0, 30, n)
+    p = rng.integers(0, 2, n)
+    # a hot pixel: 300 ON events, drifting one way
+    x = np.concatenate([x, np.full(300, 7)])
+    y = np.concatenate([y, np.full(300, 11)])
+    p = np.concatenate([p, np.ones(300, int)])
+    t = np.concatenate([np.sort(rng.integers(0, 10_000, n)), np.linspace(0, 9999, 300)])
+    order = np.argsort(t, kind="stable")
+    ev = make_stream(x[order], y[order], t[order].astype(np.int64), p[order], 40, 30)
+    w = Exposure(0, 10_000)
+    mask = hot_pixel_mask(ev, w)
+    assert mask[11, 7] and mask.sum() == 1
+    b = np.full((30, 40), 0.5, np.float32)
+    prep = EdiEvents.build(ev, w, mask)
+    assert prep.count == n - int(((x[:n] == 7) & (y[:n] == 11)).sum())
+    np.testing.assert_allclose(prep.latent(b, np.array([0.0, 1.0]), 0.3)[:, 11, 7], 0.5)
+
+
+# --------------------------------------------------------------------------------------------
+# simulated frames with known threshold
+
+
+def test_edi_with_the_true_threshold_sharpens_a_simulated_frame():
+    from trmd_cli.read.frames import read_image
+    from trmd_cli.simulate import SensorConfig, make_sample
+
+    from .conftest import SHARED
+
+    path = SHARED / "images" / "skimage" / "camera.png"
+    if path.exists():
+        img = read_image(path)
+    else:  # a synthetic scene keeps the test meaningful without the shared data
+        yy, xx = np.mgrid[0:256, 0:256]
+        img = (0.2 + 0.6 * ((xx // 32 + yy // 32) % 2)).astype(np.float32)
+    s = make_sample(img, size=(160, 120), rng=np.random.default_rng(3),
+                    sensor=SensorConfig.clean(0.2))
+    lat = edi_latent(s.blurry, s.events, s.exposure, s.exposure.instants_us(3), s.contrast)
+    gain = [psnr(lat[k], s.sharp[k]) - psnr(s.blurry, s.sharp[k]) for k in range(7)]
+    assert min(gain) > 3.0, gain
+    assert gain[3] > 5.0, gain

@@ -1,0 +1,391 @@
+"""`trmd eval` and trmd_cli.evaluate: figures against hand-computed values, analytic cases for
+the no-ground-truth figures, JSON structure, and bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import h5py
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from trmd_cli.cli.app import app
+from trmd_cli.errors import InputError
+from trmd_cli.evaluate import (
+    bins_from_scer,
+    consistency,
+    consistency_from_counts,
+    evaluate_dataset,
+    interval_counts,
+    parse_methods,
+    sharpness,
+)
+from trmd_cli.events import make_stream
+from trmd_cli.simulate import MotionRanges, SensorConfig, make_sequence
+from trmd_cli.voxel import scer_from_bins, scer_voxels
+from trmd_cli.write import H5Writer, write_events_npz, write_image, write_text
+
+from .conftest import SHARED, needs_shared
+from .test_simulate_sample import texture
+
+runner = CliRunner()
+N = 3
+C_TRUE = 0.1
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def seq():
+    """2 consecutive 64×48 exposures of a clean sensor (c = 0.1), 20 px of motion."""
+    return make_sequence(texture(120, 160, seed=1), n=N, size=(64, 48), exposure_us=10_000,
+                         frames=2, rng=np.random.default_rng(0),
+                         sensor=SensorConfig.clean(C_TRUE, eps=0.001),
+                         motion=MotionRanges(translation_px=20, rotation_deg=0, scale=0,
+                                             perspective=0))
+
+
+def _write(path, seq, *, sharp=True, contrast=True):
+    with H5Writer(path, 64, 48) as w:
+        w.add_events(seq.events)
+        for k, e in enumerate(seq.exposures):
+            w.add_frame(seq.blurry[k], e, sharp=seq.sharp[k] if sharp else None,
+                        contrast=seq.contrast if contrast else None)
+    return path
+
+
+@pytest.fixture(scope="module")
+def gt_h5(seq, tmp_path_factory):
+    return _write(tmp_path_factory.mktemp("gt") / "sim.h5", seq)
+
+
+@pytest.fixture(scope="module")
+def nogt_h5(seq, tmp_path_factory):
+    return _write(tmp_path_factory.mktemp("nogt") / "real.h5", seq, sharp=False,
+                  contrast=False)
+
+
+def _psnr_by_hand(a, b):
+    return 10 * math.log10(1.0 / np.mean((np.clip(a, 0, 1).astype(np.float64) - b) ** 2))
+
+
+def _ssim_by_hand(a, b):
+    """Wang et al. SSIM with scipy (not the OpenCV path of trmd_cli.metrics)."""
+    from scipy.ndimage import correlate
+
+    x = np.arange(11) - 5.0
+    g = np.exp(-x * x / (2 * 1.5**2))
+    win = np.outer(g, g) / np.outer(g, g).sum()
+
+    def f(img):
+        return correlate(img, win, mode="constant")[5:-5, 5:-5]
+
+    a, b = np.clip(a, 0, 1).astype(np.float64), b.astype(np.float64)
+    ma, mb = f(a), f(b)
+    va, vb, cov = f(a * a) - ma**2, f(b * b) - mb**2, f(a * b) - ma * mb
+    c1, c2 = 0.01**2, 0.03**2
+    return float(np.mean((2 * ma * mb + c1) * (2 * cov + c2)
+                         / ((ma**2 + mb**2 + c1) * (va + vb + c2))))
+
+
+# ---------------------------------------------------------------------------------------------
+# figures against ground truth
+
+
+def test_blurry_psnr_and_ssim_match_hand_computation(gt_h5, seq):
+    rep = evaluate_dataset(gt_h5, ["blurry"], n=N, ground_truth=True)
+    assert rep.ground_truth and rep.kind == "trmd-h5" and rep.frames == 2
+    scores = rep.method("blurry").frames
+    for k, s in enumerate(scores):
+        gt = seq.sharp[k]
+        per = [_psnr_by_hand(seq.blurry[k], g) for g in gt]
+        assert s.psnr_mid == pytest.approx(per[N], abs=1e-6)
+        # the sequence figure is the mean of per-frame PSNRs, not the PSNR of the stack
+        assert s.psnr_seq == pytest.approx(np.mean(per), abs=1e-6)
+        whole = 10 * math.log10(1 / np.mean((seq.blurry[k][None] - gt.astype(np.float64)) ** 2))
+        assert abs(s.psnr_seq - whole) > 1e-3
+        assert s.ssim_mid == pytest.approx(_ssim_by_hand(seq.blurry[k], gt[N]), abs=1e-6)
+        assert s.ssim_seq == pytest.approx(
+            np.mean([_ssim_by_hand(seq.blurry[k], g) for g in gt]), abs=1e-6)
+    assert rep.method("blurry").mean("psnr_mid") == pytest.approx(
+        np.mean([s.psnr_mid for s in scores]))
+
+
+def test_edi_with_true_contrast_beats_blurry_on_clean_data(gt_h5):
+    rep = evaluate_dataset(gt_h5, "blurry,edi-true-c", n=N)
+    blurry, edi = rep.method("blurry").frames, rep.method("edi-true-c").frames
+    for b, e in zip(blurry, edi, strict=True):
+        assert e.contrast == pytest.approx(C_TRUE, rel=1e-6)
+        assert e.psnr_seq > b.psnr_seq + 3.0
+        assert e.ssim_seq > b.ssim_seq
+
+
+def test_edi_auto_contrast_beats_blurry(gt_h5):
+    rep = evaluate_dataset(gt_h5, "blurry,edi", n=N, limit=1)
+    (b,), (e,) = rep.method("blurry").frames, rep.method("edi").frames
+    assert 0.03 < e.contrast < 0.3
+    assert e.psnr_mid > b.psnr_mid + 2.0
+
+
+def test_limit_and_progress(gt_h5):
+    calls = []
+    rep = evaluate_dataset(gt_h5, ["blurry"], n=N, limit=1,
+                           progress=lambda d, t: calls.append((d, t)))
+    assert rep.frames == 1 and len(rep.method("blurry").frames) == 1
+    assert calls == [(1, 1)]
+
+
+def test_no_true_contrast_skips_edi_true_c_with_a_note(nogt_h5):
+    rep = evaluate_dataset(nogt_h5, "blurry,edi-true-c", n=N)
+    r = rep.method("edi-true-c")
+    assert r.skipped and "true contrast" in r.skipped and r.frames == ()
+    assert any("edi-true-c skipped" in note for note in rep.notes)
+
+
+def test_ground_truth_with_another_n_names_the_right_n(gt_h5):
+    with pytest.raises(InputError, match="--n 3"):
+        evaluate_dataset(gt_h5, ["blurry"], n=2)
+
+
+# ---------------------------------------------------------------------------------------------
+# figures without ground truth
+
+
+def test_sharpness_of_a_ramp_is_the_squared_slope():
+    y, x = np.mgrid[0:20, 0:30].astype(np.float64)
+    assert sharpness(0.01 * x + 0.02 * y) == pytest.approx(0.01**2 + 0.02**2, rel=1e-9)
+    assert sharpness(np.full((8, 8), 0.3)) == 0.0
+    img = 0.01 * x
+    assert sharpness(np.stack([img] * 3, -1)) == pytest.approx(sharpness(img))
+
+
+def _random_events(rng, n, w, h, t0, t1):
+    # odd times against instants on a grid of even µs: no event sits exactly on an instant
+    t = np.sort(rng.integers(t0 // 2, t1 // 2, n)) * 2 + 1
+    return make_stream(rng.integers(0, w, n), rng.integers(0, h, n), t, rng.integers(0, 2, n),
+                       w, h)
+
+
+def test_consistency_is_zero_for_frames_that_follow_the_events(rng):
+    w, h, c = 20, 15, 0.15
+    ev = _random_events(rng, 600, w, h, 0, 12_000)
+    instants = np.linspace(0, 12_000, 2 * N + 1)
+    # signed count since instant N, by hand: events with instants[N] < t <= instants[k]
+    s = np.zeros((2 * N + 1, h, w))
+    for x, y, t, p in zip(ev.x, ev.y, ev.t, ev.p, strict=True):
+        for k in range(2 * N + 1):
+            if instants[N] < t <= instants[k]:
+                s[k, y, x] += p
+            elif instants[k] < t <= instants[N]:
+                s[k, y, x] -= p
+    mid = rng.uniform(0.2, 0.4, (h, w))
+    frames = mid[None] * np.exp(c * s)
+    assert frames.max() < 1
+    assert consistency(frames, ev, instants, c) == pytest.approx(0.0, abs=1e-9)
+    # a frozen sequence misses every step: the error is the mean |c·E| over active pixels
+    net, active = interval_counts(ev, instants)
+    frozen = np.repeat(mid[None], 2 * N + 1, axis=0)
+    assert consistency(frozen, ev, instants, c) == pytest.approx(
+        c * np.abs(net[active]).mean(), rel=1e-9)
+    assert consistency(frames, ev, instants, 2 * c) > 0.05
+
+
+def test_interval_counts_by_hand():
+    ev = make_stream([0, 0, 1, 1, 1], [0, 0, 0, 0, 0], [5, 10, 12, 15, 30], [1, 0, 1, 1, 0],
+                     2, 1)
+    net, active = interval_counts(ev, [0, 10, 20])
+    # (0,10]: pixel 0 gets +1 −1 (active, net 0); (10,20]: pixel 1 gets +2; t=30 is outside
+    assert net[:, 0].tolist() == [[0.0, 0.0], [0.0, 2.0]]
+    assert active[:, 0].tolist() == [[True, False], [False, True]]
+
+
+def test_consistency_from_counts_rejects_bad_shapes_and_contrast():
+    with pytest.raises(InputError):
+        consistency_from_counts(np.ones((3, 4, 4)), np.zeros((3, 4, 4)), 0.2)
+    with pytest.raises(InputError):
+        consistency_from_counts(np.ones((3, 4, 4)), np.zeros((2, 4, 4)), 0.0)
+    assert math.isnan(consistency_from_counts(np.ones((3, 4, 4)), np.zeros((2, 4, 4)), 0.2))
+
+
+def test_bins_from_scer_inverts_scer(rng):
+    bins = rng.integers(-3, 4, (2 * N, 5, 6)).astype(np.float32)
+    assert np.array_equal(bins_from_scer(scer_from_bins(bins)), bins)
+
+
+def test_no_gt_mode_on_simulated_data(gt_h5):
+    rep = evaluate_dataset(gt_h5, "blurry,edi-true-c", n=N, ground_truth=False)
+    assert not rep.ground_truth
+    b, e = rep.method("blurry").frames[0], rep.method("edi-true-c").frames[0]
+    assert b.psnr_mid is None and e.ssim_seq is None
+    # both judged with the data's true c; EDI's frames follow the events by construction
+    assert b.contrast == pytest.approx(C_TRUE, rel=1e-6)
+    assert e.consistency < 0.2 * b.consistency
+    assert e.sharpness > b.sharpness
+
+
+def test_no_ground_truth_falls_back_automatically_with_a_note(nogt_h5):
+    rep = evaluate_dataset(nogt_h5, ["blurry"], n=N)
+    assert not rep.ground_truth
+    assert any("no ground truth" in note for note in rep.notes)
+    s = rep.method("blurry").frames[0]
+    # no true c stored: the reference c is EDI's automatic estimate
+    assert s.consistency > 0 and 0.03 < s.contrast < 0.3
+
+
+def test_parse_methods():
+    assert parse_methods("edi, blurry,edi") == ("edi", "blurry")
+    with pytest.raises(InputError, match="choose from blurry, edi, edi-true-c, trmd"):
+        parse_methods("blurry,deblurgan")
+    with pytest.raises(InputError):
+        parse_methods(" , ")
+
+
+# ---------------------------------------------------------------------------------------------
+# other dataset layouts
+
+
+def _to_u8(a):
+    return (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def test_gopro_style_h5(seq, tmp_path):
+    path = tmp_path / "gopro.h5"
+    blur = _to_u8(np.repeat(seq.blurry[..., None], 3, -1))
+    sharp = _to_u8(np.repeat(seq.sharp[..., None], 3, -1))
+    vox = np.stack([scer_voxels(seq.events, e, N) for e in seq.exposures])
+    with h5py.File(path, "w") as f:
+        f["blur_images"], f["sharp_images"], f["voxel"] = blur, sharp, vox
+    rep = evaluate_dataset(path, "blurry,edi,edi-true-c", n=N)
+    assert rep.kind == "gopro-h5" and rep.ground_truth and rep.frames == 2
+    assert rep.method("edi-true-c").skipped
+    s = rep.method("blurry").frames[1]
+    b, g = blur[1] / 255.0, sharp[1] / 255.0
+    assert s.psnr_mid == pytest.approx(_psnr_by_hand(b, g[N]), abs=1e-6)
+    # no raw events: EDI runs on the bins recovered from the voxels, c estimated from them
+    for e, bl in zip(rep.method("edi").frames, rep.method("blurry").frames, strict=True):
+        assert 0.5 * C_TRUE < e.contrast < 2 * C_TRUE
+        assert e.psnr_seq > bl.psnr_seq + 3.0
+
+
+def test_folder_dataset_with_sharp_frames(seq, tmp_path):
+    root = tmp_path / "set"
+    (root / "blurry").mkdir(parents=True)
+    for k in range(len(seq.exposures)):
+        write_image(root / "blurry" / f"{k:04d}.png", seq.blurry[k])
+        (root / "sharp" / f"{k:04d}").mkdir(parents=True)
+        for j, img in enumerate(seq.sharp[k]):
+            write_image(root / "sharp" / f"{k:04d}" / f"{j}.png", img)
+    write_text(root / "blurry" / "Exposure_start.txt",
+               "".join(f"{e.start_us}\n" for e in seq.exposures))
+    write_text(root / "blurry" / "Exposure_end.txt",
+               "".join(f"{e.end_us}\n" for e in seq.exposures))
+    write_events_npz(root / "events.npz", seq.events)
+    rep = evaluate_dataset(root, "blurry,edi", n=N, limit=1)
+    assert rep.kind == "folder" and rep.ground_truth and rep.frames == 1
+    s = rep.method("blurry").frames[0]
+    b, g = _to_u8(seq.blurry[0]) / 255.0, _to_u8(seq.sharp[0]) / 255.0
+    assert s.psnr_seq == pytest.approx(np.mean([_psnr_by_hand(b, x) for x in g]), abs=1e-5)
+    assert rep.method("edi").frames[0].psnr_mid > s.psnr_mid
+
+
+# ---------------------------------------------------------------------------------------------
+# the command
+
+
+def test_cli_table_and_json(gt_h5, nogt_h5, tmp_path):
+    out = tmp_path / "eval.json"
+    r = run("eval", gt_h5, nogt_h5, "--methods", "blurry,edi-true-c,trmd", "--n", N,
+            "--json", out)
+    assert r.exit_code == 0, r.output
+    assert "PSNR mid" in r.output and "consistency" in r.output
+    doc = json.loads(out.read_text())
+    assert doc["methods"] == ["blurry", "edi-true-c", "trmd"] and doc["n"] == N
+    assert doc["protocol"]["psnr"]["data_range"] == 1.0
+    d0, d1 = doc["datasets"]
+    assert d0["ground_truth"] is True and d1["ground_truth"] is False
+    blurry = d0["methods"]["blurry"]
+    assert blurry["frames"] == 2 and len(blurry["per_frame"]) == 2
+    assert blurry["mean"]["psnr_mid"] == pytest.approx(
+        np.mean([f["psnr_mid"] for f in blurry["per_frame"]]), abs=1e-5)
+    assert set(blurry["per_frame"][0]) >= {"index", "psnr_mid", "psnr_seq", "ssim_mid",
+                                           "ssim_seq", "sharpness", "consistency", "seconds"}
+    assert d1["methods"]["edi-true-c"]["skipped"]
+    # means pooled separately over the sets with and without ground truth
+    with_gt, without = doc["overall"]["ground_truth"], doc["overall"]["no_ground_truth"]
+    assert with_gt["blurry"]["frames"] == 2 and without["blurry"]["frames"] == 2
+    assert with_gt["blurry"]["psnr_seq"] == pytest.approx(blurry["mean"]["psnr_seq"], abs=1e-5)
+    assert without["blurry"]["psnr_seq"] is None
+    assert without["edi-true-c"]["frames"] == 0
+
+
+def test_cli_overall_table_for_several_sets(gt_h5):
+    r = run("eval", gt_h5, gt_h5, "--methods", "blurry", "--limit", 1)
+    assert r.exit_code == 0, r.output
+    assert "overall: mean over every frame of 2 datasets with ground truth" in r.output
+
+
+def test_cli_trmd_with_weights(gt_h5, tmp_path):
+    from trmd_cli.models import create_model
+    from trmd_cli.weights import save_weights
+
+    weights = save_weights(tmp_path / "w.safetensors", create_model("test_trmd", n=N), meta={})
+    out = tmp_path / "e.json"
+    r = run("eval", gt_h5, "--methods", "trmd", "--weights", weights, "--limit", 1, "--json", out)
+    assert r.exit_code == 0, r.output
+    s = json.loads(out.read_text())["datasets"][0]["methods"]["trmd"]
+    assert s["skipped"] is None and s["frames"] == 1
+    assert 5 < s["mean"]["psnr_seq"] < 100
+
+
+def test_cli_trmd_without_weights_is_skipped_with_a_note(gt_h5):
+    from trmd_cli.weights import default_weights_path
+
+    if default_weights_path().is_file():
+        pytest.skip("this installation ships weights")
+    r = run("eval", gt_h5, "--methods", "blurry,trmd", "--limit", 1)
+    assert r.exit_code == 0, r.output
+    assert "trmd skipped" in r.output and "--weights" in r.output
+
+
+def test_cli_strips(gt_h5, tmp_path):
+    from trmd_cli.read import read_image
+
+    strips = tmp_path / "strips"
+    r = run("eval", gt_h5, "--methods", "blurry,edi-true-c", "--strip", strips)
+    assert r.exit_code == 0, r.output
+    files = sorted(strips.iterdir())
+    assert [f.name for f in files] == ["sim_000000.png", "sim_000001.png"]
+    img = read_image(files[0])
+    # blurry | edi-true-c | ground truth, 4 px apart
+    assert img.shape[:2] == (48, 3 * 64 + 2 * 4)
+
+
+def test_cli_bad_input(gt_h5, nogt_h5, tmp_path):
+    out = tmp_path / "x.json"
+    r = run("eval", nogt_h5, "--gt", "--methods", "blurry", "--json", out)
+    assert r.exit_code == 2 and "no ground truth" in r.output and "--no-gt" in r.output
+    assert not out.exists()
+    r = run("eval", gt_h5, "--methods", "blurry,magic")
+    assert r.exit_code == 2 and "unknown method 'magic'" in r.output
+    r = run("eval", tmp_path / "missing.h5")
+    assert r.exit_code == 2 and "not found" in r.output
+    out.write_text("{}")
+    r = run("eval", gt_h5, "--methods", "blurry", "--json", out)
+    assert r.exit_code == 2 and "--overwrite" in r.output
+    assert "Traceback" not in r.output
+
+
+@needs_shared
+def test_real_frames_without_ground_truth():
+    root = SHARED / "real" / "esl-cups"
+    if not root.exists():
+        pytest.skip("esl-cups is absent")
+    rep = evaluate_dataset(root, "blurry,edi", n=N, limit=1)
+    assert rep.kind == "folder" and not rep.ground_truth
+    b, e = rep.method("blurry").frames[0], rep.method("edi").frames[0]
+    assert e.sharpness > 1.5 * b.sharpness
+    assert e.consistency < b.consistency

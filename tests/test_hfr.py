@@ -1,0 +1,163 @@
+"""`trmd hfr` and the continuous stream (pipeline.hfr_stream): frame counts and timing, gaps
+filled from the events (checked against ground truth), videos, TRMD with in-between instants."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from trmd_cli.cli.app import app
+from trmd_cli.events import Exposure
+from trmd_cli.pipeline import (
+    EdiMethod,
+    deblur_frames,
+    exposure_instants,
+    hfr_stream,
+    open_inputs,
+)
+from trmd_cli.read.frames import read_image
+from trmd_cli.write import write_h5, write_image
+
+runner = CliRunner()
+W, H = 128, 96
+T = 20_000
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(10 * np.log10(1.0 / np.mean((np.clip(a, 0, 1) - b) ** 2)))
+
+
+def scene() -> np.ndarray:
+    yy, xx = np.mgrid[0:300, 0:300]
+    img = 0.15 + 0.7 * ((xx // 20 + yy // 28) % 2)
+    return (img + 0.1 * np.sin(xx / 6.0) * np.cos(yy / 9.0)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def seq():
+    """Three back-to-back exposures (no gaps) of one camera path, clean sensor, c = 0.2."""
+    from trmd_cli.simulate import SensorConfig, make_sequence
+
+    return make_sequence(scene(), n=3, size=(W, H), exposure_us=T, frames=3,
+                         frame_interval_us=T, rng=np.random.default_rng(11),
+                         sensor=SensorConfig.clean(0.2))
+
+
+@pytest.fixture
+def gapped(tmp_path, seq):
+    """The first and last exposures only, with every event: the middle one becomes a gap."""
+    path = tmp_path / "rec.h5"
+    write_h5(path, seq.events, blurry=seq.blurry[[0, 2]], exposures=[seq.exposures[0],
+                                                                     seq.exposures[2]])
+    return path
+
+
+def test_gap_is_filled_from_the_events(gapped, seq):
+    with open_inputs([gapped]) as ins:
+        results = deblur_frames(ins.source, EdiMethod(3, 0.2))
+        frames = list(hfr_stream(results, ins.source.recording))
+    times = np.array([f.t_us for f in frames])
+    kinds = [f.kind for f in frames]
+    # 7 + 5 gap frames (step T/6 across a gap of T) + 7; evenly spaced, in time order
+    assert kinds == ["exposure"] * 7 + ["gap"] * 5 + ["exposure"] * 7
+    np.testing.assert_allclose(np.diff(times), T / 6, rtol=1e-6)
+    # the gap frames sit at the middle exposure's latent instants k = 1..5: compare with truth
+    gap = [f.image for f in frames if f.kind == "gap"]
+    for k, img in enumerate(gap, start=1):
+        truth = seq.sharp[1, k]
+        assert psnr(img, truth) > psnr(seq.blurry[1], truth) + 3, k
+        # better than a plain cross-fade between the neighbouring exposures' end frames
+        w = k / 6
+        fade = (1 - w) * frames[6].image + w * frames[12].image
+        assert psnr(img, truth) > psnr(fade, truth) + 1, k
+
+
+def test_no_events_in_the_gap_gives_a_cross_fade():
+    from trmd_cli.pipeline import Estimate, FrameResult
+
+    def result(name, e, value):
+        inst = exposure_instants(e, 3)
+        frames = np.full((3, 4, 5), value, np.float32)
+        return FrameResult(0, name, frames[0], e, Estimate(frames, inst, 0.2), 10)
+
+    a, b = result("a", Exposure(0, 600), 0.2), result("b", Exposure(1200, 1800), 0.8)
+    out = list(hfr_stream([a, b], recording=None))
+    gap = [f for f in out if f.kind == "gap"]
+    assert len(gap) == 1 and gap[0].t_us == pytest.approx(900)
+    np.testing.assert_allclose(gap[0].image, 0.5, atol=1e-6)
+
+
+def test_cli_folder_output_and_counts(gapped, tmp_path):
+    out = tmp_path / "frames"
+    r = runner.invoke(app, ["hfr", str(gapped), "-o", str(out), "--contrast", "0.2",
+                            "--per-exposure", "4"])
+    assert r.exit_code == 0, r.output
+    lines = [ln.split() for ln in (out / "timestamps.txt").read_text().splitlines()
+             if not ln.startswith("#")]
+    # step T/3 per exposure; gap of T → floor(3 − 0.5) = 2 frames
+    assert [ln[2] for ln in lines] == ["exposure"] * 4 + ["gap"] * 2 + ["exposure"] * 4
+    assert len(list(out.glob("*.png"))) == 10
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["frames"] == {"exposure": 8, "gap": 2} and meta["per_exposure"] == 4
+    assert read_image(out / "000000.png").shape == (H, W)
+
+
+@pytest.mark.parametrize("suffix", [".mp4", ".gif"])
+def test_cli_video(gapped, tmp_path, suffix):
+    import imageio.v3 as iio
+
+    out = tmp_path / f"slowmo{suffix}"
+    r = runner.invoke(app, ["hfr", str(gapped), "-o", str(out), "--fps", "24",
+                            "--no-fill-gaps"])
+    assert r.exit_code == 0, r.output
+    assert "14 frames" in r.stdout
+    video = iio.imread(out)
+    assert video.shape[0] == 14 and video.shape[1:3] == (H, W)
+
+
+def test_cli_images_and_events(seq, tmp_path):
+    from trmd_cli.write import write_events_npz
+
+    names = []
+    for k in range(3):
+        names.append(tmp_path / f"{k:04d}.png")
+        write_image(names[-1], seq.blurry[k], 16)
+    write_events_npz(tmp_path / "ev.npz", seq.events, seq.exposures)
+    r = runner.invoke(app, ["hfr", *map(str, names), str(tmp_path / "ev.npz"),
+                            "-o", str(tmp_path / "o"), "--contrast", "0.2"])
+    assert r.exit_code == 0, r.output
+    # back-to-back exposures: no room for gap frames
+    assert len(list((tmp_path / "o").glob("*.png"))) == 21
+
+
+def test_trmd_in_between_instants_are_propagated(gapped, tmp_path):
+    from trmd_cli.models import create_model
+    from trmd_cli.weights import save_weights
+
+    w = save_weights(tmp_path / "w.safetensors", create_model("test_trmd", n=2), meta={})
+    out = tmp_path / "o"
+    r = runner.invoke(app, ["hfr", str(gapped), "-o", str(out), "--method", "trmd",
+                            "--weights", str(w), "--per-exposure", "9", "--threads", "1",
+                            "--contrast", "0.2"])
+    assert r.exit_code == 0, r.output
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["method"] == "trmd" and meta["n"] == 2 and meta["frames"]["exposure"] == 18
+    # its own 2N+1 frames; the gap (T, step T/4 → 3 frames) still filled with an estimated c
+    r = runner.invoke(app, ["hfr", str(gapped), "-o", str(tmp_path / "o2"), "--method", "trmd",
+                            "--weights", str(w), "--threads", "1"])
+    assert r.exit_code == 0, r.output
+    meta = json.loads((tmp_path / "o2" / "meta.json").read_text())
+    assert meta["frames"] == {"exposure": 10, "gap": 3} and len(meta["contrast"]) == 2
+
+
+def test_frames_out_of_time_order_is_bad_input(seq, tmp_path):
+    path = tmp_path / "rev.h5"
+    write_h5(path, seq.events, blurry=seq.blurry[[2, 0]],
+             exposures=[seq.exposures[2], seq.exposures[0]])
+    out = tmp_path / "o.mp4"
+    r = runner.invoke(app, ["hfr", str(path), "-o", str(out)])
+    assert r.exit_code == 2 and "time order" in r.output
+    assert not out.exists()
