@@ -7,7 +7,7 @@ wikimedia, skimage, sklearn, scipy, matplotlib photos, and a subsample of the vi
 Samples follow ``SimulatedDataset``'s default training ranges (sensor noise, thresholds,
 motion, exposure, gain, read noise), drawn per sample.
 
-    python weights_recipe/make_trainset.py -o ../runs/train_128.h5 --count 16000 --workers 2
+    python weights_recipe/make_trainset.py -o ../runs/train_128.h5 --count 10000 --workers 2
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("images", nargs="?", type=Path, default=DEFAULT_IMAGES)
     ap.add_argument("-o", "--output", type=Path, required=True)
-    ap.add_argument("--count", type=int, default=16000)
+    ap.add_argument("--count", type=int, default=10000)
     ap.add_argument("--crop", type=int, default=128)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--workers", type=int, default=2)
