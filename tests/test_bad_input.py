@@ -702,9 +702,8 @@ OTHER_CASES = [
      lambda d: _w(d / "v.mp4", b"\0\0\0\x18ftypmp42" + bytes(99)), "not a readable video", ()),
     ("simulate", "empty-folder", lambda d: _mkdir(d / "frames"), "image file", ()),
     ("simulate", "missing-input", lambda d: d / "nowhere.png", "not found", ()),
-    pytest.param("train", "recipe-not-toml", lambda d: _w(d / "bad.toml", b"this is = not [toml\n"),
-                 "not valid TOML", ("-r", "{path}", "-d", "{images}"),
-                 marks=pytest.mark.xfail(strict=True, reason="no hint yet (train/recipe.py)")),
+    ("train", "recipe-not-toml", lambda d: _w(d / "bad.toml", b"this is = not [toml\n"),
+     "not valid TOML", ("-r", "{path}", "-d", "{images}")),
     ("train", "init-weights-random-bytes", lambda d: _w(d / "w.safetensors", _noise(3000, 8)),
      "not a readable safetensors", ("--init-weights", "{path}", "-d", "{images}")),
     ("train", "init-weights-pickle", lambda d: _w(d / "w.safetensors", __import__("pickle").dumps(

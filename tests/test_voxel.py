@@ -9,7 +9,13 @@ from hypothesis import strategies as st
 
 from trmd_cli.errors import InputError
 from trmd_cli.events import Exposure, make_stream
-from trmd_cli.voxel import event_bins, scer_from_bins, scer_voxels, scer_voxels_torch, voxel_instants
+from trmd_cli.voxel import (
+    event_bins,
+    scer_from_bins,
+    scer_voxels,
+    scer_voxels_torch,
+    voxel_instants,
+)
 
 from .conftest import random_stream
 

@@ -490,6 +490,9 @@ def open_dataset(path: str | Path, n: int = 3, options: ReadOptions | None = Non
         return _GoproSource(path, n)
     rec = open_events(path, options)
     try:
+        if rec.num_events() == 0:  # every method would only pass the blurry frames through
+            raise InputError("the recording holds no events", path=path,
+                             hint="check the file (trmd info)")
         frames = frames_from_recording(rec)
         has_truth = bool(getattr(rec, "has_ground_truth", False))
         has_c = len(frames) > 0 and hasattr(rec, "contrast") and rec.contrast(0) is not None

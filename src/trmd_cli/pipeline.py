@@ -285,7 +285,7 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
             src = FrameSource(_shift(src.entries, offset_us), src.width, src.height,
                               recording=rec, stored_frames=True, options=options,
                               warnings=list(src.warnings), owns_recording=True)
-            _check_windows(src.exposures(), rec.time_range_us(), paths[0])
+            _check_windows(src.exposures(), rec, paths[0])
         except BaseException:
             rec.close()
             raise
@@ -330,7 +330,7 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
             src = open_frame_folder(paths[0], paths[1], options,
                                     exposures=_shift_windows(wins, offset_us))
         if src.recording is not None:
-            _check_windows(src.exposures(), src.recording.time_range_us(), paths[1])
+            _check_windows(src.exposures(), src.recording, paths[1])
         return Inputs(src, False, names, list(src.warnings))
 
     if len(paths) >= 2 and all(is_image[:-1]):
@@ -350,7 +350,7 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
                                  f"{len(wins)} exposure window(s)", path=events,
                                  hint="give a frames folder with Exposure_start.txt / "
                                  "Exposure_end.txt, or one image with --exposure T0 T1")
-            _check_windows(wins, rec.time_range_us(), events)
+            _check_windows(wins, rec, events)
             from .read.folders import frame_number
             from .read.frames import check_frame_matches, read_image
 
@@ -378,12 +378,18 @@ def _shift(entries: Iterable[FrameEntry], offset_us: int) -> list[FrameEntry]:
             for e in entries]
 
 
-def _check_windows(windows: Sequence[Exposure], trange: tuple[int, int], path) -> None:
-    """Bad input if *every* window misses the events (a few may: they pass through)."""
+def _check_windows(windows: Sequence[Exposure], recording, path) -> None:
+    """Bad input if the recording holds no events, or *every* window misses them (a few may:
+    they pass through)."""
     from .window import check_in_range
 
     if not windows:
         return
+    if recording.num_events() == 0:
+        # else the line would blame the windows, against a time range of [0, 0]
+        raise InputError("the recording holds no events", path=path,
+                         hint="check the file (trmd info)")
+    trange = recording.time_range_us()
     first, last = trange
     if all(w.end_us < first or w.start_us > last for w in windows):
         check_in_range(windows[0], trange, "exposure window", path)

@@ -25,7 +25,7 @@ def check_video_path(path: str | Path) -> Path:
     path = Path(path)
     if path.suffix.lower() not in VIDEO_SUFFIXES:
         raise InputError(f"video output must end in .mp4 or .gif, got {path.suffix or 'none'}",
-                         path=path, hint="e.g. -o slowmo.mp4")
+                         path=path, hint="name it like slowmo.mp4 or slowmo.gif")
     return path
 
 
@@ -46,7 +46,7 @@ class VideoWriter:
     def __init__(self, path: str | Path, fps: float = 30.0, quality: int = 8) -> None:
         self.path = check_video_path(path)
         if not (np.isfinite(fps) and fps > 0):
-            raise InputError(f"--fps must be positive, got {fps}")
+            raise InputError(f"--fps must be positive, got {fps}", hint="e.g. --fps 30")
         self.fps = float(fps)
         self.quality = int(quality)
         self.kind = self.path.suffix.lower()[1:]

@@ -12,6 +12,7 @@ A colour blurry frame with mono events is deblurred per channel with the same ev
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -45,8 +46,9 @@ Contrast = Annotated[str, typer.Option(
 TimeOffset = Annotated[str | None, typer.Option(
     "--time-offset", help="Shift the exposure window(s) relative to the events, e.g. -40ms "
     "(real DAVIS data often needs tens of ms).")]
-Weights = Annotated[Path | None, typer.Option("--weights", help="TRMD weights (.safetensors)."
-                                                 " Default: the shipped weights.")]
+Weights = Annotated[Path | None, typer.Option("--weights", help="TRMD weights (.safetensors); "
+                                                 "implies --method trmd. Default: the shipped "
+                                                 "weights.")]
 HotPixels = Annotated[bool, typer.Option("--hot-pixels/--keep-hot-pixels",
                                          help="Ignore the events of hot pixels (default on).")]
 BitDepth = Annotated[int, typer.Option("--bit-depth", help="PNG bit depth: 8 or 16.")]
@@ -64,8 +66,19 @@ def parse_contrast(text: str) -> float | None:
         raise InputError(f"--contrast {text!r} is not a number or 'auto'",
                          hint="e.g. --contrast 0.25, or --contrast auto") from None
     if not (value > 0 and value < 10):
-        raise InputError(f"--contrast {text} must be a positive number (typically 0.1–0.5)")
+        raise InputError(f"--contrast {text} must be a positive number (typically 0.1–0.5)",
+                         hint="e.g. --contrast 0.25, or --contrast auto")
     return value
+
+
+def choose_method(method: str | None, weights: Path | None, default: str) -> str:
+    """The method to run: ``--weights`` without ``--method`` means TRMD (else a damaged weights
+    file would be ignored without a word); with ``--method edi`` it is ignored with a warning."""
+    if method is None:
+        return "trmd" if weights is not None else default
+    if weights is not None and method.lower() != "trmd":
+        warn(f"--weights is ignored: --method is {method}")
+    return method.lower()
 
 
 def deblur(
@@ -102,19 +115,27 @@ def deblur(
     from ..errors import InputError
     from ..pipeline import DEFAULT_METHOD, MethodConfig, deblur_frames, make_method, open_inputs
     from ..pipeline import write_result_folder as write_folder
-    from ..video import VideoWriter, check_video_path
+    from ..video import VIDEO_SUFFIXES, VideoWriter, check_video_path
     from ..write import atomic_dir, check_output
 
     # every option is checked before any file is opened or written
     if len(inputs) > 2:
         raise InputError(f"deblur takes one or two inputs, got {len(inputs)}",
                          hint="for several images use a frames folder, or `trmd hfr`")
-    config = MethodConfig(method=(method or DEFAULT_METHOD).lower(), n=n,
+    config = MethodConfig(method=choose_method(method, weights, DEFAULT_METHOD), n=n,
                           contrast=parse_contrast(contrast), hot_pixels=hot_pixels,
                           weights=weights, device=device, threads=threads)
     if bit_depth not in (8, 16):
-        raise InputError(f"--bit-depth must be 8 or 16, got {bit_depth}")
+        raise InputError(f"--bit-depth must be 8 or 16, got {bit_depth}",
+                         hint="use --bit-depth 8 or --bit-depth 16")
+    if video is not None and not (math.isfinite(fps) and fps > 0):
+        raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 10")
     offset = parse_duration_us(time_offset) if time_offset else 0
+    if output.suffix.lower() in VIDEO_SUFFIXES and not output.is_dir():
+        # a folder named like a video would surprise whoever opens it in a player
+        raise InputError("-o names a video, but deblur writes a folder of frames", path=output,
+                         hint=f"use -o FOLDER --video {output.name}, or `trmd hfr -o "
+                         f"{output.name}`")
     check_output(output, overwrite)
     if output.exists() and not output.is_dir():
         raise InputError("the output exists and is not a folder", path=output,

@@ -11,13 +11,24 @@ from the next, cross-faded), so the video is continuous. ``--fps`` is only the p
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from .boundary import err, guarded, progress_enabled, warn
-from .deblur import BitDepth, Contrast, HotPixels, Method, NOpt, TimeOffset, Weights, parse_contrast
+from .deblur import (
+    BitDepth,
+    Contrast,
+    HotPixels,
+    Method,
+    NOpt,
+    TimeOffset,
+    Weights,
+    choose_method,
+    parse_contrast,
+)
 from .options import (
     Columns,
     Device,
@@ -81,13 +92,14 @@ def hfr(
     from ..video import VIDEO_SUFFIXES, VideoWriter
     from ..write import atomic_dir, check_output, write_image, write_json, write_text
 
-    config = MethodConfig(method=(method or DEFAULT_METHOD).lower(), n=n,
+    config = MethodConfig(method=choose_method(method, weights, DEFAULT_METHOD), n=n,
                           contrast=parse_contrast(contrast), hot_pixels=hot_pixels,
                           weights=weights, device=device, threads=threads)
     if bit_depth not in (8, 16):
-        raise InputError(f"--bit-depth must be 8 or 16, got {bit_depth}")
-    if not fps > 0:
-        raise InputError(f"--fps must be positive, got {fps}")
+        raise InputError(f"--bit-depth must be 8 or 16, got {bit_depth}",
+                         hint="use --bit-depth 8 or --bit-depth 16")
+    if not (math.isfinite(fps) and fps > 0):
+        raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 30")
     offset = parse_duration_us(time_offset) if time_offset else 0
     as_video = output.suffix.lower() in VIDEO_SUFFIXES
     if not as_video and output.suffix and not output.is_dir():

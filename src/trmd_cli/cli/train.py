@@ -9,12 +9,12 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Optional
 
 import typer
 
 from .boundary import err, guarded, progress_enabled, warn
-from .options import Device, Overwrite, Threads
+from .options import Device, Overwrite
 
 
 class _RichReporter:
@@ -115,7 +115,9 @@ def train(
         "--set", help="Change a recipe value, e.g. --set optim.lr=1e-3 --set train.steps=500. "
         "Repeatable.")] = None,
     device: Device = "auto",
-    threads: Threads = None,
+    threads: Annotated[Optional[int], typer.Option(
+        "--threads", min=1, help="CPU threads per process (default: the recipe's train.threads; "
+        "0 there means cores / processes).")] = None,
     overwrite: Overwrite = False,
 ) -> None:
     """Train TRMD weights (RE-Net) as a recipe says; resumable, time-budgeted, DDP-ready."""

@@ -8,8 +8,17 @@ from typing import Annotated, Optional
 import typer
 
 from .boundary import err, guarded, progress_enabled, warn
-from .options import (Columns, Exposure, N, OneBased, Overwrite, Sensor, TimeUnit,
-                      parse_duration_us, read_options)
+from .options import (
+    Columns,
+    Exposure,
+    N,
+    OneBased,
+    Overwrite,
+    Sensor,
+    TimeUnit,
+    parse_duration_us,
+    read_options,
+)
 
 
 def voxelize(

@@ -204,7 +204,9 @@ def load_recipe(path: str | Path | None = None, overrides: list[str] | None = No
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as e:
-        raise InputError(f"not valid TOML: {e}", path=path) from None
+        raise InputError(f"not valid TOML: {e}", path=path,
+                         hint="fix the line named, or start from `trmd_cli/recipes/default.toml`"
+                         ) from None
     except UnicodeDecodeError:
         raise InputError("not a text file", path=path, hint="a recipe is a TOML file") from None
     if overrides:

@@ -1,0 +1,264 @@
+"""Interrupted `trmd deblur` (every frame of a recording, with ``--video``) and `trmd hfr` (into
+an .mp4, a .gif and a folder): Ctrl-C, ``kill`` and ``kill -9`` leave a previous output
+byte-identical and no temporary files (``kill -9`` cannot clean up: its temporaries are swept by
+the next run that writes that output).
+
+Real processes (``python -m trmd_cli``) are signalled in the middle of the work: once their
+temporary output folder holds a few finished frames, or once the FFmpeg encoder they started is
+running. Ctrl-C is sent as a terminal sends it, to the whole process group; FFmpeg, which
+imageio-ffmpeg starts in a group of its own, must not be left running either way.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from trmd_cli.cli.app import app
+from trmd_cli.events import Exposure, make_stream
+from trmd_cli.write import H5Writer
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
+                                reason="signals and /proc as on Linux")
+
+PREVIOUS = b"the user's previous output\n"
+W, H = 64, 48
+runner = CliRunner()
+
+
+def write_recording(path: Path, frames: int, events_per_frame: int = 800) -> Path:
+    """trmd HDF5: a 10 ms exposure every 20 ms, events all the time (the gaps have some)."""
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:H, 0:W]
+    base = (0.2 + 0.6 * (((xx // 8) + (yy // 8)) % 2)).astype(np.float32)
+    with H5Writer(path, W, H) as w:
+        t = np.concatenate([k * 20_000 + np.sort(rng.integers(0, 20_000, events_per_frame))
+                            for k in range(frames)])
+        n = len(t)
+        w.add_events(make_stream(rng.integers(0, W, n), rng.integers(0, H, n), t,
+                                 rng.integers(0, 2, n), W, H))
+        for k in range(frames):
+            w.add_frame(np.roll(base, k, axis=1), Exposure(k * 20_000 + 5_000, k * 20_000 + 15_000))
+    return path
+
+
+@pytest.fixture(scope="module")
+def long_rec(tmp_path_factory) -> Path:
+    """1500 frames: deblurring all of them takes seconds, however fast the machine."""
+    return write_recording(tmp_path_factory.mktemp("src") / "long.h5", 1500)
+
+
+@pytest.fixture(scope="module")
+def short_rec(tmp_path_factory) -> Path:
+    return write_recording(tmp_path_factory.mktemp("src") / "short.h5", 3)
+
+
+# -- helpers ---------------------------------------------------------------------------------------
+
+
+def temps(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if ".tmp" in p.name)
+
+
+def previous_output(path: Path) -> dict[str, bytes]:
+    """Put the user's previous output at ``path`` (a file, or a folder of files for a folder
+    output) and return its snapshot."""
+    if path.suffix:
+        path.write_bytes(PREVIOUS)
+    else:
+        (path / "000000").mkdir(parents=True)
+        (path / "meta.json").write_bytes(PREVIOUS)
+        (path / "000000" / "sharp.png").write_bytes(PREVIOUS * 3)
+    return snapshot(path)
+
+
+def snapshot(path: Path) -> dict[str, bytes]:
+    if path.is_file():
+        return {"": path.read_bytes()}
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*"))
+            if p.is_file()}
+
+
+def launch(*args: str) -> subprocess.Popen:
+    """``python -m trmd_cli ARGS`` as the leader of its own process group (like a shell job)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
+    return subprocess.Popen([sys.executable, "-m", "trmd_cli", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+
+
+def wait_until(proc: subprocess.Popen, ready, what: str, timeout: float = 90.0) -> None:
+    end = time.monotonic() + timeout
+    while not ready():
+        if proc.poll() is not None:
+            _, err = proc.communicate()
+            pytest.fail(f"the run ended (rc {proc.returncode}) before {what}: {err}")
+        if time.monotonic() > end:
+            proc.kill()
+            pytest.fail(f"timed out waiting for {what}")
+        time.sleep(0.005)
+
+
+def children(pid: int) -> list[int]:
+    """Child processes of ``pid`` (all its threads')."""
+    out: list[int] = []
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            out += [int(c) for c in (task / "children").read_text().split()]
+    except OSError:
+        pass
+    return out
+
+
+def gone(pid: int) -> bool:
+    """The process has exited (a zombie waiting for a dead parent counts as gone)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in "ZX"
+    except OSError:
+        return True
+
+
+def wait_gone(pids: list[int], timeout: float = 30.0) -> None:
+    end = time.monotonic() + timeout
+    while not all(gone(p) for p in pids):
+        assert time.monotonic() < end, f"processes {pids} still running"
+        time.sleep(0.02)
+
+
+def frames_done(folder: Path, out_name: str, at_least: int) -> bool:
+    """The run's temporary output folder holds ``at_least`` finished entries."""
+    for tmp in folder.glob(f".{out_name}.trmd-*.tmp"):
+        try:
+            if sum(1 for _ in tmp.iterdir()) >= at_least:
+                return True
+        except OSError:
+            pass
+    return False
+
+
+def one_line(stderr: str) -> str:
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, stderr
+    assert "Traceback" not in stderr
+    return lines[0]
+
+
+def stop(proc: subprocess.Popen, sig: signal.Signals) -> str:
+    """Deliver ``sig`` as a user would (Ctrl-C: to the whole process group); return stderr."""
+    if sig == signal.SIGINT:
+        os.killpg(proc.pid, sig)
+    else:
+        proc.send_signal(sig)
+    _, err = proc.communicate(timeout=90)
+    return err
+
+
+CAUGHT = [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")]
+
+
+# -- deblur: every frame of a recording, plus a video -----------------------------------------------
+
+
+@pytest.mark.parametrize("sig,code,word", CAUGHT, ids=["ctrl-c", "kill"])
+def test_deblur_interrupted_mid_recording(tmp_path, long_rec, sig, code, word):
+    out, video = tmp_path / "out", tmp_path / "latent.mp4"
+    before = previous_output(out), previous_output(video)
+    proc = launch("deblur", str(long_rec), "-o", str(out), "--video", str(video), "--overwrite")
+    wait_until(proc, lambda: frames_done(tmp_path, "out", 3) and children(proc.pid),
+               "three frames were written and the encoder started")
+    encoder = children(proc.pid)
+    err = stop(proc, sig)
+    assert proc.returncode == code, err
+    assert f"{word}; no partial output was left" in one_line(err)
+    assert (snapshot(out), snapshot(video)) == before
+    assert temps(tmp_path) == []
+    wait_gone(encoder)
+
+
+def test_deblur_killed_leaves_temps_that_the_next_run_sweeps(tmp_path, long_rec, short_rec):
+    out, video = tmp_path / "out", tmp_path / "latent.mp4"
+    before = previous_output(out), previous_output(video)
+    proc = launch("deblur", str(long_rec), "-o", str(out), "--video", str(video), "--overwrite")
+    wait_until(proc, lambda: frames_done(tmp_path, "out", 3) and children(proc.pid),
+               "three frames were written and the encoder started")
+    encoder = children(proc.pid)
+    proc.kill()
+    proc.communicate(timeout=60)
+    assert proc.returncode == -signal.SIGKILL
+    wait_gone(encoder)  # FFmpeg sees its input end and exits: nothing keeps running
+    assert (snapshot(out), snapshot(video)) == before
+    left = temps(tmp_path)
+    assert any(n.startswith(f".out.trmd-{proc.pid}-") for n in left), left
+    assert any(n.startswith(f".latent.mp4.trmd-{proc.pid}-") for n in left), left
+
+    r = runner.invoke(app, ["deblur", str(short_rec), "-o", str(out), "--video", str(video),
+                            "--overwrite", "--contrast", "0.2"])
+    assert r.exit_code == 0, r.output
+    assert temps(tmp_path) == []
+    assert sorted(p.name for p in out.iterdir()) == ["000000", "000001", "000002", "meta.json"]
+    assert video.read_bytes()[4:8] == b"ftyp"
+
+
+# -- hfr: one continuous video (or folder) ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("sig,code,word", CAUGHT, ids=["ctrl-c", "kill"])
+@pytest.mark.parametrize("out_name", ["slowmo.mp4", "slowmo.gif", "slowmo"])
+def test_hfr_interrupted(tmp_path, long_rec, out_name, sig, code, word):
+    out = tmp_path / out_name
+    before = previous_output(out)
+    proc = launch("hfr", str(long_rec), "-o", str(out), "--overwrite")
+    if out_name.endswith(".mp4"):
+        ready = lambda: bool(temps(tmp_path)) and bool(children(proc.pid))  # noqa: E731
+        what = "the encoder started"
+    elif out_name.endswith(".gif"):  # frames are gathered in memory until the end
+        ready = lambda: bool(temps(tmp_path)) and _cpu_seconds(proc.pid) > 1.5  # noqa: E731
+        what = "the run was well under way"
+    else:
+        ready = lambda: frames_done(tmp_path, out_name, 20)  # noqa: E731
+        what = "20 frames were written"
+    wait_until(proc, ready, what)
+    encoder = children(proc.pid)
+    err = stop(proc, sig)
+    assert proc.returncode == code, err
+    assert f"{word}; no partial output was left" in one_line(err)
+    assert snapshot(out) == before
+    assert temps(tmp_path) == []
+    wait_gone(encoder)
+
+
+def test_hfr_mp4_killed_leaves_a_temp_that_the_next_run_sweeps(tmp_path, long_rec, short_rec):
+    out = tmp_path / "slowmo.mp4"
+    before = previous_output(out)
+    proc = launch("hfr", str(long_rec), "-o", str(out), "--overwrite")
+    wait_until(proc, lambda: bool(temps(tmp_path)) and bool(children(proc.pid)),
+               "the encoder started")
+    encoder = children(proc.pid)
+    proc.kill()
+    proc.communicate(timeout=60)
+    wait_gone(encoder)
+    assert snapshot(out) == before
+    left = temps(tmp_path)
+    assert left and all(n.startswith(f".slowmo.mp4.trmd-{proc.pid}-") for n in left), left
+
+    r = runner.invoke(app, ["hfr", str(short_rec), "-o", str(out), "--overwrite",
+                            "--contrast", "0.2"])
+    assert r.exit_code == 0, r.output
+    assert temps(tmp_path) == []
+    assert out.read_bytes()[4:8] == b"ftyp"
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a running process (s), from /proc/PID/stat."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
