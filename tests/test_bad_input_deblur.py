@@ -39,7 +39,7 @@ PREVIOUS = b"the user's previous output"
 runner = CliRunner()
 
 
-# -- inputs that work (the starting points for damage) ------------------------------------------
+# -- inputs that work (the starting points for damage) --------------------------------------------
 
 
 def stream(n: int = 8000, seed: int = 3, t_max: int = 200_000):
@@ -85,7 +85,7 @@ def good(tmp_path_factory) -> Good:
                 d / "rec.h5", d / "w3.safetensors")
 
 
-# -- builders of damaged inputs ------------------------------------------------------------------
+# -- builders of damaged inputs -------------------------------------------------------------------
 
 
 def _w(path: Path, data: bytes) -> Path:
@@ -125,6 +125,18 @@ def _dataset_with(d: Path, g: Good, k: int, data: bytes) -> Path:
     _folder_with(ds, g, k, data=data).rename(ds / "blurry")
     (ds / "events.npz").write_bytes(g.folder_events.read_bytes())
     return ds
+
+
+def _png_header(w: int, h: int) -> bytes:
+    """A PNG whose header says w×h 8-bit gray, followed by no pixel data at all."""
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data)))
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"")) + chunk(b"IEND", b""))
 
 
 def _h5_rec(path: Path, s, blurry: np.ndarray, exposures: list[Exposure]) -> Path:
@@ -203,7 +215,7 @@ class _Evil:
         return (print, ("unpickled!",))
 
 
-# -- the matrix ----------------------------------------------------------------------------------
+# -- the matrix -----------------------------------------------------------------------------------
 
 DH = ("deblur", "hfr")
 ALL = ("deblur", "hfr", "eval")
@@ -248,6 +260,10 @@ CASES = [
     Case("image-zeroed-after-magic", lambda d, g: _img_ev(_w(d / "b.png", g.image.read_bytes()[:8]
                                                              + bytes(300)), g), UNREADABLE),
     Case("image-is-text", lambda d, g: _img_ev(_w(d / "b.png", b"0.1 1 1 1\n" * 30), g),
+         UNREADABLE),
+    Case("image-header-claims-40000x40000", lambda d, g: _img_ev(_w(d / "b.png", _png_header(
+        40_000, 40_000)), g), UNREADABLE),  # OpenCV raised cv2.error (exit 1)
+    Case("image-png-without-pixels", lambda d, g: _img_ev(_w(d / "b.png", _png_header(W, H)), g),
          UNREADABLE),
     Case("image-missing", lambda d, g: _img_ev(d / "nowhere.png", g), "not found"),
     Case("image-without-events", lambda d, g: ([g.image], []), "no events"),
@@ -328,6 +344,17 @@ CASES = [
     Case("weights-metadata-says-2-channels", lambda d, g: _img_ev(g.image, g, *_trmd(
         _weights_meta(g, d / "w.safetensors", args=json.dumps({**_args(g), "channels": 2})))),
          "do not describe a RENet", names="{weights}"),
+    # sizes come from the metadata: checked against the tensors before anything is allocated
+    # (these two would ask for 1.3 TB of parameters, and for a billion modules)
+    Case("weights-metadata-says-huge-widths", lambda d, g: _img_ev(g.image, g, *_trmd(
+        _weights_meta(g, d / "w.safetensors", args=json.dumps(
+            {**_args(g), "widths": [20_000, 40_000, 40_000, 40_000]})))),
+         r"tensor \S+ has shape \(4,\), the architecture needs \(20000,\)",
+         names="{weights}"),
+    Case("weights-metadata-says-a-billion-blocks", lambda d, g: _img_ev(g.image, g, *_trmd(
+        _weights_meta(g, d / "w.safetensors", args=json.dumps(
+            {**_args(g), "num_res_blocks": 10**9})))), "residual blocks but the file holds",
+         names="{weights}"),
     Case("weights-metadata-not-json", lambda d, g: _img_ev(g.image, g, *_trmd(_weights_meta(
         g, d / "w.safetensors", args="{not json"))), "malformed", names="{weights}"),
     Case("weights-other-model-class", lambda d, g: _img_ev(g.image, g, *_trmd(_weights_meta(
@@ -401,7 +428,7 @@ def _foreign_safetensors(path: Path) -> Path:
     return path
 
 
-# -- running one case ------------------------------------------------------------------------------
+# -- running one case -----------------------------------------------------------------------------
 
 HFR_OUTPUTS = ("out.mp4", "out.gif", "out")
 
@@ -525,25 +552,21 @@ def test_failure_in_the_middle_leaves_no_partial_output(good, tmp_path, target, 
     assert_untouched(out_dir, outputs, previous)
 
 
-def test_unsorted_events_found_late_leave_no_partial_output(tmp_path):
+def test_unsorted_events_found_late_leave_no_partial_output(tmp_path, monkeypatch):
     """The damage is in the last window of a lazily read recording: three frames are done
     before it is found."""
-    rec = _h5_unsorted_late(tmp_path / "u.h5")
-    out = tmp_path / "out"
-    calls = []
     from trmd_cli import pipeline
 
+    rec = _h5_unsorted_late(tmp_path / "u.h5")
+    calls = []
     real = pipeline.write_result_folder
 
     def counting(*a, **k):
         calls.append(1)
         return real(*a, **k)
 
-    pipeline.write_result_folder = counting
-    try:
-        r = runner.invoke(app, ["deblur", str(rec), "-o", str(out), "--contrast", "0.2"])
-    finally:
-        pipeline.write_result_folder = real
+    monkeypatch.setattr(pipeline, "write_result_folder", counting)
+    r = runner.invoke(app, ["deblur", str(rec), "-o", str(tmp_path / "out"), "--contrast", "0.2"])
     assert_one_clear_line(r, str(rec), "not sorted")
     assert len(calls) == K - 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["u.h5"]
@@ -673,9 +696,13 @@ def _env() -> dict[str, str]:
     return {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
 
 
-@pytest.mark.parametrize("what", ["weights-torch-zip", "weights-cut", "frame-unreadable-hfr-mp4"])
+@pytest.mark.parametrize("what", ["weights-torch-zip", "weights-cut", "frame-unreadable-hfr-mp4",
+                                  "png-without-pixels"])
 def test_real_process_prints_one_line(good, tmp_path, what):
-    if what == "weights-torch-zip":
+    if what == "png-without-pixels":  # libpng wrote "libpng error: …" to fd 2 by itself
+        image = _w(tmp_path / "b.png", _png_header(W, H))
+        argv, out, names = ["deblur", str(image), str(good.events)], tmp_path / "o", str(image)
+    elif what == "weights-torch-zip":
         weights = _torch_zip(tmp_path / "w.safetensors")
         argv, out, names = ["deblur", str(good.image), str(good.events), *_trmd(weights)], \
             tmp_path / "o", str(weights)

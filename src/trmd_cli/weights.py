@@ -232,6 +232,19 @@ def _sniff(path: Path) -> None:
                            hint="trmd never unpickles files; use a .safetensors weights file")
 
 
+def _stored_shapes(path: Path) -> dict[str, tuple[int, ...]]:
+    """Name → shape of every tensor in a safetensors file, from its header (no tensor read)."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="numpy") as fh:
+            return {name: tuple(fh.get_slice(name).get_shape()) for name in fh.keys()}
+    except (SafetensorError, OSError) as e:
+        reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise WeightsError(f"not a readable safetensors file ({reason})", path=path,
+                           hint="the file is truncated or corrupt: copy it again") from None
+
+
 def read_metadata(path: str | Path | None = None) -> dict[str, Any]:
     """The decoded metadata of a weights file (None = the shipped default), without torch.
 
@@ -319,21 +332,24 @@ def load_weights(path: str | Path | None = None, *, device: str = "cpu",
         raise WeightsError(f"weights are for {channels}-channel ({kinds.get(channels, '?')}) "
                            f"frames, not {expect_channels}-channel", path=p,
                            hint=f"use weights trained on {kinds.get(expect_channels, '?')} frames")
+    # The metadata decides the architecture, so a stranger's file decides how much memory it
+    # takes: build it on the meta device first (shapes only, nothing allocated) and check it
+    # against the tensors the file really holds before building it for real.
+    stored = _stored_shapes(p)
+    blocks = meta["args"].get("num_res_blocks")
+    if isinstance(blocks, int) and blocks > len(stored):  # each block holds several tensors
+        raise WeightsError(f"metadata asks for {blocks} residual blocks but the file holds "
+                           f"{len(stored)} tensors", path=p, hint="the metadata and tensors "
+                           "disagree: the file was edited or written by another tool")
     try:
-        model = RENet(**meta["args"])
-    except (TypeError, ValueError, InputError) as e:
+        with torch.device("meta"):
+            skeleton = RENet(**meta["args"])
+    except (TypeError, ValueError, RuntimeError, InputError) as e:
         raise WeightsError(f"metadata args do not describe a RENet this version builds ({e})",
                            path=p, hint="upgrade trmd or retrain") from None
-    model.variant = meta.get("architecture")
-
-    try:
-        state = load_file(str(p), device="cpu")
-    except (SafetensorError, OSError) as e:
-        raise WeightsError(f"cannot read tensors ({str(e).splitlines()[0]})", path=p,
-                           hint="the file is truncated or corrupt: copy it again") from None
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(state))
-    extra = sorted(set(state) - set(expected))
+    expected = {name: tuple(t.shape) for name, t in skeleton.state_dict().items()}
+    missing = sorted(set(expected) - set(stored))
+    extra = sorted(set(stored) - set(expected))
     if missing or extra:
         parts = []
         if missing:
@@ -343,11 +359,20 @@ def load_weights(path: str | Path | None = None, *, device: str = "cpu",
         raise WeightsError(f"tensors do not match the {meta.get('architecture')} architecture: "
                            + "; ".join(parts), path=p, hint="the metadata and tensors disagree: "
                            "the file was edited or written by another tool")
-    for name, t in state.items():
-        if tuple(t.shape) != tuple(expected[name].shape):
-            raise WeightsError(f"tensor {name} has shape {tuple(t.shape)}, the architecture "
-                               f"needs {tuple(expected[name].shape)}", path=p,
+    for name, shape in stored.items():
+        if shape != expected[name]:
+            raise WeightsError(f"tensor {name} has shape {shape}, the architecture "
+                               f"needs {expected[name]}", path=p,
                                hint="the metadata and tensors disagree")
+    model = RENet(**meta["args"])  # now no larger than the tensors in the file
+    model.variant = meta.get("architecture")
+
+    try:
+        state = load_file(str(p), device="cpu")
+    except (SafetensorError, OSError) as e:
+        raise WeightsError(f"cannot read tensors ({str(e).splitlines()[0]})", path=p,
+                           hint="the file is truncated or corrupt: copy it again") from None
+    for name, t in state.items():
         if t.is_floating_point() and not torch.isfinite(t).all():
             raise WeightsError(f"tensor {name} holds NaN or infinite values", path=p,
                                hint="the weights are corrupt or from a diverged training")

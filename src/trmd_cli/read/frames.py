@@ -27,8 +27,23 @@ def read_image(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError("image not found", path=path, hint="check the path")
+    import contextlib
+    import threading
+
+    from .aedat4 import _Capture, _native_stderr_captured
+
     data = np.fromfile(path, np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    img = None
+    # libpng prints its own complaint about a damaged PNG straight to fd 2 (OpenCV's log level
+    # does not reach it), and OpenCV raises for headers claiming more than 2^30 pixels. fd 2 is
+    # shared by all threads: only the main thread (the CLI's) may swap it.
+    main = threading.current_thread() is threading.main_thread()
+    with _native_stderr_captured() if main else contextlib.nullcontext(_Capture()) as capture:
+        try:
+            img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        except cv2.error:
+            img = None
+        capture.drop = img is None
     if img is None:
         raise FormatError("not a readable image (truncated or corrupt?)", path=path,
                           hint="use PNG, JPG or TIFF")
@@ -47,7 +62,8 @@ def read_image(path: str | Path) -> np.ndarray:
             out = out[..., 0]
         else:
             out = out[..., ::-1]  # OpenCV BGR → RGB
-            if np.array_equal(out[..., 0], out[..., 1]) and np.array_equal(out[..., 1], out[..., 2]):
+            if (np.array_equal(out[..., 0], out[..., 1])
+                    and np.array_equal(out[..., 1], out[..., 2])):
                 out = out[..., 0]
     return np.ascontiguousarray(out)
 
