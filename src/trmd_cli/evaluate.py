@@ -835,7 +835,8 @@ def _lpips_fn():
     return fn
 
 
-def _load_trmd(weights: str | Path | None, n: int):
+def _load_trmd(weights: str | Path | None, n: int, device: str = "auto",
+               threads: int | None = None):
     """(pipeline.TrmdMethod, None), or (None, note) when no weights are given and none ship."""
     from .weights import default_weights_path
 
@@ -844,7 +845,7 @@ def _load_trmd(weights: str | Path | None, n: int):
                       "pass --weights PATH to a .safetensors file from `trmd train`")
     from .pipeline import TrmdMethod
 
-    return TrmdMethod(n, weights), None
+    return TrmdMethod(n, weights, device, threads), None
 
 
 def evaluate_dataset(
@@ -962,15 +963,18 @@ def evaluate(
     options: ReadOptions | None = None,
     lpips: bool | None = None,
     on_frame: Callable[[FrameOutputs], None] | None = None,
+    device: str = "auto",
+    threads: int | None = None,
 ) -> EvalReport:
-    """:func:`evaluate_dataset` over several datasets, loading the weights once.
+    """:func:`evaluate_dataset` over several datasets, loading the weights once (on
+    ``device``, with ``threads`` torch CPU threads).
 
     ``progress`` is called as ``progress(dataset_path, done, total)``.
     """
     methods = parse_methods(methods)
     trmd, notes = None, []
     if "trmd" in methods:
-        trmd, note = _load_trmd(weights, n)
+        trmd, note = _load_trmd(weights, n, device, threads)
         if note:
             notes.append(note)
     reports = []

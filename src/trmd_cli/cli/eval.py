@@ -9,7 +9,17 @@ from typing import Annotated
 import typer
 
 from .boundary import err, guarded, progress_enabled, warn
-from .options import Columns, N, OneBased, Overwrite, Sensor, TimeUnit, read_options
+from .options import (
+    Columns,
+    Device,
+    N,
+    OneBased,
+    Overwrite,
+    Sensor,
+    Threads,
+    TimeUnit,
+    read_options,
+)
 
 #: notes printed per dataset (per-frame warnings can be many); --json keeps them all
 _MAX_NOTES = 8
@@ -43,6 +53,8 @@ def eval_command(
         "--strip", help="Write a compare strip (blurry | methods | ground truth) per frame "
                         "into this folder.")] = None,
     overwrite: Overwrite = False,
+    device: Device = "auto",
+    threads: Threads = None,
     time_unit: TimeUnit = None,
     columns: Columns = None,
     one_based: OneBased = False,
@@ -75,7 +87,7 @@ def eval_command(
     def run(on_frame=None):
         with progress:
             return evaluate(datasets, chosen, n, limit, weights, advance, ground_truth=gt,
-                            options=options, on_frame=on_frame)
+                            options=options, on_frame=on_frame, device=device, threads=threads)
 
     if strip is None:
         report = run()
