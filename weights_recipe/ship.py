@@ -41,6 +41,10 @@ def main() -> None:
     from trmd_cli.weights import load_weights, save_weights, weights_hash
 
     model, meta = load_weights(args.candidate)
+    # what the model itself records (architecture, args, n …) is written again by save_weights
+    own = {"format", "format_version", "architecture", "model_class", "dtype", "trmd_version",
+           "n", "channels", "args"}
+    meta = {k: v for k, v in meta.items() if k not in own}
     with tempfile.TemporaryDirectory() as d:
         half = Path(d) / "half.safetensors"
         save_weights(half, model, meta=meta, half=True)  # measure what ships: fp16

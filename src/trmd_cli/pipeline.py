@@ -50,7 +50,7 @@ __all__ = [
 ]
 
 #: the method used when none is asked for; flip to "trmd" once weights ship
-DEFAULT_METHOD = "edi"
+DEFAULT_METHOD = "trmd"
 METHODS = ("edi", "trmd")
 #: N used by EDI when none is given (2N+1 = 7 frames)
 DEFAULT_N = 3

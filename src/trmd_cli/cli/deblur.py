@@ -33,7 +33,7 @@ from .options import (
 )
 
 #: Typer can only show a literal default; keep it in sync with pipeline.DEFAULT_METHOD
-_DEFAULT_METHOD_HELP = "edi"
+_DEFAULT_METHOD_HELP = "trmd"
 
 Method = Annotated[str | None, typer.Option(
     "--method", help="edi (model-based, no weights) or trmd (learned residuals). "
