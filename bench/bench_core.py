@@ -56,7 +56,8 @@ def main() -> None:
         write_events_npz(files["npz"], stream)
         write_h5(files["hdf5"], stream)
         write_events_text(files["text"], stream)
-        print(f"{'reader':<8} {'events':>12} {'seconds':>8} {'Mev/s':>8} {'peak MiB':>9} {'file MiB':>9}")
+        print(f"{'reader':<8} {'events':>12} {'seconds':>8} {'Mev/s':>8} {'peak MiB':>9} "
+              f"{'file MiB':>9}")
         for fmt, path in files.items():
             code = CHILD.format(bench=str(Path(__file__).parent), path=str(path),
                                 repeat=1 if fmt == "text" else 3)
@@ -74,7 +75,8 @@ def main() -> None:
         torch.set_num_threads(1)
         from trmd_cli.voxel import scer_voxels_torch
 
-        xs, ys = torch.from_numpy(stream.x.astype(np.int64)), torch.from_numpy(stream.y.astype(np.int64))
+        xs = torch.from_numpy(stream.x.astype(np.int64))
+        ys = torch.from_numpy(stream.y.astype(np.int64))
         ts, ps = torch.from_numpy(stream.t), torch.from_numpy(stream.p)
         secs = best_of(lambda: scer_voxels_torch(xs, ys, ts, ps, win, 3, h, w))
         print(f"voxelize (N=3, one thread, torch): {n / secs / 1e6:.1f} Mev/s")

@@ -88,7 +88,8 @@ def test_convert_round_trips(npz, tmp_path):
 
 @pytest.mark.parametrize("args,needle", [
     (["info", "missing.npz"], "file not found"),
-    (["voxelize", "{npz}", "-o", "{tmp}/v.npz", "--exposure", "200000", "300000"], "outside the events"),
+    (["voxelize", "{npz}", "-o", "{tmp}/v.npz", "--exposure", "200000", "300000"],
+     "outside the events"),
     (["voxelize", "{npz}", "-o", "{tmp}/v.npz", "--exposure", "6", "5"], "empty or reversed"),
     (["voxelize", "{npz}", "-o", "{tmp}/v.npz", "--sensor", "10"], "not WxH"),
     (["voxelize", "{npz}", "-o", "{tmp}/v.npz", "--sensor", "10x10"], "outside the sensor"),

@@ -236,7 +236,7 @@ def test_sniff_by_magic_not_extension(tmp_path, rng):
 
 
 def test_make_stream_never_mutates(rng):
-    x = np.array([3, 1]); y = np.array([0, 0]); t = np.array([5, 1]); p = np.array([0, 1])
+    x, y, t, p = np.array([3, 1]), np.array([0, 0]), np.array([5, 1]), np.array([0, 1])
     copies = [a.copy() for a in (x, y, t, p)]
     s = make_stream(x, y, t, p, 4, 1, sort=True)
     assert s.t.tolist() == [1, 5] and s.x.tolist() == [1, 3]

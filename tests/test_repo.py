@@ -24,3 +24,12 @@ def test_readme_has_exactly_two_setup_commands_and_ci_runs_the_test_one():
     assert tests in ci.splitlines()
     for path in re.findall(r"examples/\S+", install_and_run):
         assert (ROOT / path).exists(), path
+
+
+def test_cli_reference_is_up_to_date():
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, str(ROOT / "docs" / "gen_cli.py"), "--check"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr + " — run `python docs/gen_cli.py`"

@@ -29,10 +29,11 @@ def test_augment_item_consistent_across_keys(rng):
     for seed in range(40):
         out = augment_item(item, np.random.default_rng(seed))
         # the mapping applied to blurry must be the one applied to every sharp frame: find it
-        reversed_time = torch.equal(out["voxels"][0], _same_geom(item["voxels"][5], item["blurry"][0], out["blurry"][0]))
+        geom = (item["blurry"][0], out["blurry"][0])
+        reversed_time = torch.equal(out["voxels"][0], _same_geom(item["voxels"][5], *geom))
         seen.add(reversed_time)
         # middle frame stays the middle frame; the set of frames is the same up to order
-        assert torch.equal(out["sharp"][3, 0], _same_geom(item["sharp"][3, 0], item["blurry"][0], out["blurry"][0]))
+        assert torch.equal(out["sharp"][3, 0], _same_geom(item["sharp"][3, 0], *geom))
     assert seen == {True, False}
 
 
@@ -41,7 +42,7 @@ def _same_geom(src: torch.Tensor, ref_in: torch.Tensor, ref_out: torch.Tensor) -
     for tr in (False, True):
         for hf in (False, True):
             for vf in (False, True):
-                def f(a):
+                def f(a, hf=hf, vf=vf, tr=tr):
                     a = a.flip(-1) if hf else a
                     a = a.flip(-2) if vf else a
                     return a.transpose(-1, -2) if tr else a

@@ -216,7 +216,8 @@ def make_stream(
         pi = p  # compared as stored: casting first would turn 1.5 into 1
         # three comparisons, not np.unique: that sorts, and costs more than reading the file
         if len(pi) and ((pi != 1) & (pi != 0) & (pi != -1)).any():
-            raise InputError(f"polarity values {np.unique(pi)[:5].tolist()} are not in {{0, 1, -1}}",
+            seen = np.unique(pi)[:5].tolist()
+            raise InputError(f"polarity values {seen} are not in {{0, 1, -1}}",
                              path=source, hint="check the column order (--columns)")
         p8 = np.where(pi > 0, 1, -1).astype(np.int8)
     return EventStream(x.astype(np.uint16), y.astype(np.uint16), t, p8, int(width), int(height))

@@ -13,7 +13,8 @@ from .options import Columns, OneBased, Sensor, TimeUnit, read_options
 
 
 def info(
-    file: Annotated[Path, typer.Argument(help="Event file (txt, npz, npy, h5, aedat4, raw, dat, mat).")],
+    file: Annotated[Path, typer.Argument(
+        help="Event file (txt, npz, npy, h5, aedat4, raw, dat, mat).")],
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
     time_unit: TimeUnit = None,
     columns: Columns = None,

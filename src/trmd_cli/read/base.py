@@ -99,7 +99,7 @@ class Recording(ABC):
     def sensor_size(self) -> tuple[int, int]:
         return (self.width, self.height)
 
-    def close(self) -> None:  # pragma: no cover - trivial
+    def close(self) -> None:  # noqa: B027 - optional hook, most readers hold nothing open
         pass
 
     def __enter__(self) -> "Recording":

@@ -156,7 +156,8 @@ class HDF5Recording(Recording):
     def _read_error(self, e: Exception) -> FormatError:
         msg = str(e)
         if "filter" in msg.lower() or "plugin" in msg.lower():
-            return FormatError("uses an HDF5 compression filter that is not installed", path=self.path,
+            return FormatError("uses an HDF5 compression filter that is not installed",
+                               path=self.path,
                                hint="pip install 'trmd[dsec]' (hdf5plugin)")
         return FormatError(f"cannot be read, truncated or corrupt ({msg})", path=self.path,
                            hint=_DAMAGED)
