@@ -164,7 +164,6 @@ def _simulate_still(input, output, w, h, n, count, frames, frame_interval_ms, ex
 
     import numpy as np
 
-    from ..events import EventStream
     from ..read.frames import read_image
     from ..simulate import DEFAULT_EXPOSURE_US, MotionRanges, iter_sequence
     from ..write import H5Writer
@@ -191,14 +190,9 @@ def _simulate_still(input, output, w, h, n, count, frames, frame_interval_ms, ex
                 frame_interval_us=interval_us, rng=rng, sensor=sensor, motion=motion,
                 read_noise=read_noise, zoom=None, random_view=count > 1, t0_us=t0)
             span_end = exposures[-1].end_us
-            for item in it:
-                if isinstance(item, EventStream):
-                    writer.add_events(item)
-                    events_total += len(item)
-                else:
-                    writer.add_frame(item.blurry, item.exposure, sharp=item.sharp,
-                                     contrast=ev_sensor.mean_contrast)
-                    total_frames += 1
+            ev_count, fr_count = _write_items(it, writer, ev_sensor.mean_contrast)
+            events_total += ev_count
+            total_frames += fr_count
             t0 = span_end + 10_000
             progress.update(task, completed=j + 1)
     typer.echo(f"wrote {output}: {total_frames} frame(s) of {w}×{h} with {2 * n + 1} sharp "
@@ -212,7 +206,6 @@ def _simulate_frames(input, output, w, h, n, frames, frame_interval_ms, exposure
     import numpy as np
 
     from ..errors import InputError
-    from ..events import EventStream
     from ..simulate.video import (
         VIDEO_EXTENSIONS,
         FolderFrames,
@@ -262,21 +255,12 @@ def _simulate_frames(input, output, w, h, n, frames, frame_interval_ms, exposure
                     frame_interval_us=(exposures[1].start_us - exposures[0].start_us
                                        if len(exposures) > 1 else None))
     rng = np.random.default_rng(seed)
-    done = 0
-    events_total = 0
     with progress, H5Writer(output, w, h, attrs={"simulator": json.dumps(settings)}) as writer:
         task = progress.add_task("simulating", total=len(source) - 1)
         ev_sensor, it = iter_video(source, exposures, n=n, sensor=sensor, rng=rng,
                                    read_noise=read_noise,
                                    on_interval=lambda i, t: progress.update(task, completed=i))
-        for item in it:
-            if isinstance(item, EventStream):
-                writer.add_events(item)
-                events_total += len(item)
-            else:
-                writer.add_frame(item.blurry, item.exposure, sharp=item.sharp,
-                                 contrast=ev_sensor.mean_contrast)
-                done += 1
+        events_total, done = _write_items(it, writer, ev_sensor.mean_contrast)
     if done < len(exposures):
         warn(f"only {done} of {len(exposures)} exposures were complete (the video was shorter "
              "than it said)")
@@ -298,6 +282,22 @@ def _asdict(obj) -> dict:
     from dataclasses import asdict
 
     return asdict(obj)
+
+
+def _write_items(items, writer, contrast: float) -> tuple[int, int]:
+    """Write a simulator's event blocks and finished exposures as they come (bounded memory);
+    returns (events, frames) written."""
+    from ..events import EventStream
+
+    events = frames = 0
+    for item in items:
+        if isinstance(item, EventStream):
+            writer.add_events(item)
+            events += len(item)
+        else:
+            writer.add_frame(item.blurry, item.exposure, sharp=item.sharp, contrast=contrast)
+            frames += 1
+    return events, frames
 
 
 def register(app: typer.Typer) -> None:
