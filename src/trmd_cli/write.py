@@ -133,21 +133,24 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     path = Path(path)
     _refuse_folder(path)
     suffix = path.suffix if suffix is None else suffix
+    tmp_path: Path | None = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=f".tmp{suffix}",
-                                   dir=path.parent)
-    except (PermissionError, FileNotFoundError) as e:
-        raise InputError(f"cannot write here ({e.strerror})", path=path.parent,
-                         hint="choose a folder you can write to") from None
-    os.close(fd)
-    tmp_path = Path(tmp)
-    os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs should look ordinary
-    try:
+        with _signals_deferred():  # a Ctrl-C right after creation must still find the name
+            try:
+                fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=f".tmp{suffix}",
+                                           dir=path.parent)
+            except (PermissionError, FileNotFoundError) as e:
+                raise InputError(f"cannot write here ({e.strerror})", path=path.parent,
+                                 hint="choose a folder you can write to") from None
+            tmp_path = Path(tmp)
+            os.close(fd)
+            os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs look ordinary
         yield tmp_path
         os.replace(tmp_path, path)
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp_path.unlink()
+        if tmp_path is not None:
+            with contextlib.suppress(FileNotFoundError):
+                tmp_path.unlink()
         raise
 
 
@@ -159,12 +162,15 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     new folder is complete.
     """
     path = Path(path)
+    tmp: Path | None = None
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=".tmp", dir=path.parent))
-    except (PermissionError, FileNotFoundError) as e:
-        raise InputError(f"cannot write here ({e.strerror})", path=path.parent,
-                         hint="choose a folder you can write to") from None
-    try:
+        with _signals_deferred():
+            try:
+                tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=".tmp",
+                                            dir=path.parent))
+            except (PermissionError, FileNotFoundError) as e:
+                raise InputError(f"cannot write here ({e.strerror})", path=path.parent,
+                                 hint="choose a folder you can write to") from None
         yield tmp
         if path.exists():
             old = path.with_name(f"{_temp_prefix(path)}old.tmp")
@@ -177,8 +183,28 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
         else:
             os.replace(tmp, path)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold SIGINT/SIGTERM while a temporary file is created and named: Python runs the handler
+    (KeyboardInterrupt) at the first bytecode after unblocking, i.e. inside the cleanup's try."""
+    import signal
+    import threading
+
+    mask = getattr(signal, "pthread_sigmask", None)
+    if mask is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    old = mask(signal.SIG_BLOCK, sigs)
+    try:
+        yield
+    finally:
+        mask(signal.SIG_SETMASK, old)
 
 
 def to_uint(image: np.ndarray, bit_depth: int = 8) -> np.ndarray:
