@@ -53,6 +53,19 @@ def _on_sigterm(signum, frame) -> None:
     raise Terminated()
 
 
+def _unraisable(hook) -> None:
+    """An interrupt that lands inside a finaliser or weakref callback would be printed as
+    "Exception ignored in …" and lost; hand it back to the main thread instead."""
+    if isinstance(hook.exc_value, KeyboardInterrupt):
+        import _thread
+
+        _thread.interrupt_main(signal.SIGTERM if isinstance(hook.exc_value, Terminated)
+                               else signal.SIGINT)
+        return
+    if state["verbose"]:
+        sys.__unraisablehook__(hook)
+
+
 def guarded(fn: F) -> F:
     """Wrap a command so every failure leaves as one clear line and an exit code."""
 
@@ -61,6 +74,7 @@ def guarded(fn: F) -> F:
         # Python's default for SIGTERM is to die on the spot, skipping every cleanup
         main = threading.current_thread() is threading.main_thread()
         previous = signal.signal(signal.SIGTERM, _on_sigterm) if main else None
+        previous_hook, sys.unraisablehook = sys.unraisablehook, _unraisable
         try:
             with warnings.catch_warnings():
                 if not state["verbose"]:
@@ -69,6 +83,7 @@ def guarded(fn: F) -> F:
                     warnings.simplefilter("ignore")
                 return _run(fn, args, kwargs)
         finally:
+            sys.unraisablehook = previous_hook
             if main:
                 signal.signal(signal.SIGTERM, previous)
 
