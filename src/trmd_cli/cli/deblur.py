@@ -81,6 +81,21 @@ def choose_method(method: str | None, weights: Path | None, default: str) -> str
     return method.lower()
 
 
+def method_config(method: str | None, weights: Path | None, n: int | None, contrast: str,
+                  hot_pixels: bool, device: str, threads: int | None, bit_depth: int):
+    """The options deblur and hfr share, checked and turned into a ``MethodConfig``."""
+    from ..errors import InputError
+    from ..pipeline import DEFAULT_METHOD, MethodConfig
+
+    config = MethodConfig(method=choose_method(method, weights, DEFAULT_METHOD), n=n,
+                          contrast=parse_contrast(contrast), hot_pixels=hot_pixels,
+                          weights=weights, device=device, threads=threads)
+    if bit_depth not in (8, 16):
+        raise InputError(f"--bit-depth must be 8 or 16, got {bit_depth}",
+                         hint="use --bit-depth 8 or --bit-depth 16")
+    return config
+
+
 def deblur(
     inputs: Annotated[list[Path], typer.Argument(
         help="BLURRY EVENTS, or RECORDING, or IMAGES_DIR EVENTS|EVENTS_DIR.",
@@ -113,7 +128,7 @@ def deblur(
 
     from .. import __version__
     from ..errors import InputError
-    from ..pipeline import DEFAULT_METHOD, MethodConfig, deblur_frames, make_method, open_inputs
+    from ..pipeline import deblur_frames, make_method, open_inputs
     from ..pipeline import write_result_folder as write_folder
     from ..video import VIDEO_SUFFIXES, VideoWriter, check_video_path
     from ..write import atomic_dir, check_output
@@ -122,12 +137,8 @@ def deblur(
     if len(inputs) > 2:
         raise InputError(f"deblur takes one or two inputs, got {len(inputs)}",
                          hint="for several images use a frames folder, or `trmd hfr`")
-    config = MethodConfig(method=choose_method(method, weights, DEFAULT_METHOD), n=n,
-                          contrast=parse_contrast(contrast), hot_pixels=hot_pixels,
-                          weights=weights, device=device, threads=threads)
-    if bit_depth not in (8, 16):
-        raise InputError(f"--bit-depth must be 8 or 16, got {bit_depth}",
-                         hint="use --bit-depth 8 or --bit-depth 16")
+    config = method_config(method, weights, n, contrast, hot_pixels, device, threads,
+                           bit_depth)
     if video is not None and not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 10")
     offset = parse_duration_us(time_offset) if time_offset else 0

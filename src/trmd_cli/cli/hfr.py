@@ -26,8 +26,7 @@ from .deblur import (
     NOpt,
     TimeOffset,
     Weights,
-    choose_method,
-    parse_contrast,
+    method_config,
 )
 from .options import (
     Columns,
@@ -81,8 +80,6 @@ def hfr(
     from .. import __version__
     from ..errors import InputError
     from ..pipeline import (
-        DEFAULT_METHOD,
-        MethodConfig,
         clipped_fraction,
         deblur_frames,
         hfr_stream,
@@ -92,12 +89,8 @@ def hfr(
     from ..video import VIDEO_SUFFIXES, VideoWriter
     from ..write import atomic_dir, check_output, write_image, write_json, write_text
 
-    config = MethodConfig(method=choose_method(method, weights, DEFAULT_METHOD), n=n,
-                          contrast=parse_contrast(contrast), hot_pixels=hot_pixels,
-                          weights=weights, device=device, threads=threads)
-    if bit_depth not in (8, 16):
-        raise InputError(f"--bit-depth must be 8 or 16, got {bit_depth}",
-                         hint="use --bit-depth 8 or --bit-depth 16")
+    config = method_config(method, weights, n, contrast, hot_pixels, device, threads,
+                           bit_depth)
     if not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 30")
     offset = parse_duration_us(time_offset) if time_offset else 0
