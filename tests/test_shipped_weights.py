@@ -26,9 +26,13 @@ def _psnr(a, b):
 
 
 def test_metadata_records_architecture_recipe_and_figures():
+    # the shipped file must come from the recipe committed beside it
+    from trmd_cli.train.recipe import load_recipe
+
+    recipe = load_recipe(ROOT / "weights_recipe" / "recipe.toml")
     meta = read_metadata(None)
-    assert meta["architecture"] == "trmd_small" and meta["n"] == 3 and meta["channels"] == 1
-    assert meta["recipe"]["name"] == "shipped-v1"
+    assert meta["architecture"] == recipe.model.name and meta["n"] == 3 and meta["channels"] == 1
+    assert meta["recipe"]["name"] == recipe.name
     val = meta["validation"]
     assert val["frames"] == 48 and val["trmd"]["psnr_mid"] > val["blurry"]["psnr_mid"]
 

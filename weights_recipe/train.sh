@@ -9,7 +9,7 @@ RUNS=${RUNS:-$here/../../runs}
 mkdir -p "$RUNS"
 [ -f "$RUNS/valset_kodak24.h5" ] || python "$here/make_valset.py" -o "$RUNS/valset_kodak24.h5"
 [ -f "$RUNS/train_128.h5" ] || python "$here/make_trainset.py" -o "$RUNS/train_128.h5" --count 10000 --workers 2
-run="$RUNS/shipped-v1"
+run="$RUNS/shipped-v2"
 resume=()
 [ -f "$run/checkpoint.safetensors" ] && resume=(--resume)
 trmd train --data "$RUNS/train_128.h5" --recipe "$here/recipe.toml" --out "$run" \

@@ -39,12 +39,14 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import InputError, check_shape
+from .prior import DEFAULT_CONTRASTS, edi_prior
 from .registry import register_model
 
 __all__ = [
     "RENet",
     "ATTN_NORMS",
     "NORMS",
+    "PRIORS",
     "channel_attention_logits",
     "channel_cross_attention",
     "ChannelAttention",
@@ -57,6 +59,7 @@ __all__ = [
     "trmd_paper",
     "trmd_base",
     "trmd_small",
+    "trmd_small_edi",
     "test_trmd",
 ]
 
@@ -64,6 +67,8 @@ __all__ = [
 ATTN_NORMS = ("none", "spatial", "l2")
 #: normalisation layers inside the network
 NORMS = ("batch", "none")
+#: physical priors the network can be given besides B and V (see :mod:`trmd_cli.models.prior`)
+PRIORS = ("none", "edi")
 #: number of stride-2 stages; inputs are padded to a multiple of 2**_DOWNS
 _DOWNS = 4
 
@@ -295,6 +300,12 @@ class RENet(nn.Module):
         norm: ``"batch"`` (paper) or ``"none"``: normalisation in residual blocks and the CCB's
             query/key projections.
         attn_norm: CCB logit scaling, one of :data:`ATTN_NORMS` (paper: ``"none"``).
+        prior: ``"none"`` (paper) or ``"edi"``: EDI's middle frame and residuals, computed from
+            B and V for each contrast of ``prior_contrasts`` (:func:`~trmd_cli.models.prior.
+            edi_prior`), join B's and V's inputs to the feature extractors and to the head, and
+            the head starts out returning EDI's residuals at ``prior_contrasts[1]`` — training
+            begins at EDI's quality and learns the correction. A departure from the paper.
+        prior_contrasts: the contrast ladder of the prior (log-intensity per event).
 
     Shapes:
         blurry (B, C, H, W), voxels (B, 2N, H, W) → residuals (B, 2N, C, H, W), any H, W ≥ 1.
@@ -310,7 +321,8 @@ class RENet(nn.Module):
 
     def __init__(self, n: int = 3, channels: int = 1, feat_width: int = 32,
                  widths: Sequence[int] = (64, 128, 256, 512), num_res_blocks: int = 2,
-                 norm: str = "batch", attn_norm: str = "none") -> None:
+                 norm: str = "batch", attn_norm: str = "none", prior: str = "none",
+                 prior_contrasts: Sequence[float] = DEFAULT_CONTRASTS) -> None:
         super().__init__()
         widths = tuple(int(w) for w in widths)
         if n < 1:
@@ -324,18 +336,30 @@ class RENet(nn.Module):
             raise InputError(f"norm {norm!r} is not one of {', '.join(NORMS)}")
         if attn_norm not in ATTN_NORMS:
             raise InputError(f"attn_norm {attn_norm!r} is not one of {', '.join(ATTN_NORMS)}")
+        if prior not in PRIORS:
+            raise InputError(f"prior {prior!r} is not one of {', '.join(PRIORS)}")
+        contrasts = tuple(float(c) for c in prior_contrasts)
+        if prior == "edi" and (len(contrasts) < 2 or min(contrasts) <= 0):
+            raise InputError(f"prior_contrasts must be ≥ 2 positive thresholds, got {contrasts}")
         #: every constructor argument, JSON-friendly: what weights metadata records
         self.args: dict[str, Any] = dict(n=n, channels=channels, feat_width=feat_width,
                                          widths=list(widths), num_res_blocks=num_res_blocks,
                                          norm=norm, attn_norm=attn_norm)
+        if prior != "none":  # absent for the paper's network: older weights files stay valid
+            self.args.update(prior=prior, prior_contrasts=list(contrasts))
         #: registered variant name, set by the factories (None when built directly)
         self.variant: str | None = None
         self.n, self.channels = n, channels
+        self.prior = prior
+        self.prior_contrasts = contrasts if prior == "edi" else ()
         m = 2 * n
+        k = len(self.prior_contrasts)
         w0, w1, w2, w3 = widths
+        # with the prior, B travels with EDI's middle frames, V with EDI's residuals
+        blur_in, event_in = channels * (1 + k), m * (1 + k * channels)
 
-        self.blur_fe = FeatureExtractor(channels, feat_width)
-        self.event_fe = FeatureExtractor(m, feat_width)
+        self.blur_fe = FeatureExtractor(blur_in, feat_width)
+        self.event_fe = FeatureExtractor(event_in, feat_width)
         self.ccb = CrossChannelBlock(feat_width, norm, attn_norm)
         self.sfb = SpatialFusionBlock(feat_width)
 
@@ -348,14 +372,23 @@ class RENet(nn.Module):
         self.up2 = _up_act(2 * w2, w1)
         self.up3 = _up_act(2 * w1, w0)
         self.up4 = _up_act(2 * w0, max(w0 // 2, 1))
-        self.head = PointwiseConv(max(w0 // 2, 1) + channels + m, m * channels)
+        self._head_skip = max(w0 // 2, 1)
+        self.head = PointwiseConv(self._head_skip + blur_in + event_in, m * channels)
         self.init_weights()
 
     def init_weights(self) -> None:
         """PyTorch defaults, except a near-zero head: training starts from R ≈ 0, i.e. every
-        latent frame ≈ B, instead of random residuals."""
+        latent frame ≈ B, instead of random residuals — or, with the EDI prior, from EDI's
+        residuals at the second contrast of the ladder (an identity from those inputs)."""
         nn.init.normal_(self.head.weight, std=1e-3)
         nn.init.zeros_(self.head.bias)
+        if self.prior == "edi":
+            m, c = 2 * self.n, self.channels
+            # head input order: [features, B, middles (K·C), V (2N), residuals (K·2N·C)]
+            first = self._head_skip + c * (1 + len(self.prior_contrasts)) + m + m * c
+            with torch.no_grad():
+                for j in range(m * c):
+                    self.head.weight[j, first + j] += 1.0
 
     def forward(self, blurry: torch.Tensor, voxels: torch.Tensor) -> torch.Tensor:
         """Residuals (B, 2N, C, H, W) from blurry (B, C, H, W) and voxels (B, 2N, H, W).
@@ -372,6 +405,10 @@ class RENet(nn.Module):
         if any(pad):
             blurry = F.pad(blurry, pad, mode="replicate")
             voxels = F.pad(voxels, pad, mode="replicate")
+        if self.prior == "edi":
+            middle, residuals = edi_prior(blurry, voxels, self.prior_contrasts)
+            blurry = torch.cat([blurry, middle.flatten(1, 2)], 1)
+            voxels = torch.cat([voxels, residuals.flatten(1, 3)], 1)
 
         sb, se = self.ccb(self.blur_fe(blurry), self.event_fe(voxels))
         x0 = self.sfb(sb, se)
@@ -387,7 +424,8 @@ class RENet(nn.Module):
         return out.reshape(out.shape[0], 2 * self.n, self.channels, h, w)
 
     def extra_repr(self) -> str:
-        return f"variant={self.variant!r}"
+        prior = f", prior={self.prior!r}" if self.prior != "none" else ""
+        return f"variant={self.variant!r}{prior}"
 
 
 # --------------------------------------------------------------------------------------------
@@ -406,6 +444,9 @@ _variant_args: dict[str, dict[str, Any]] = {
     # (bench/bench_renet.py); full-resolution layers dominate its time, so they stay narrow
     "trmd_small": dict(feat_width=16, widths=(32, 64, 128, 256), num_res_blocks=2,
                        norm="batch", attn_norm="spatial"),
+    # trmd_small given the EDI prior (models/prior.py): a departure from the paper
+    "trmd_small_edi": dict(feat_width=16, widths=(32, 64, 128, 256), num_res_blocks=2,
+                           norm="batch", attn_norm="spatial", prior="edi"),
     # 13.5 k parameters: for tests only
     "test_trmd": dict(feat_width=4, widths=(4, 8, 8, 8), num_res_blocks=1,
                       norm="batch", attn_norm="spatial"),
@@ -440,6 +481,12 @@ def trmd_base(**kwargs: Any) -> RENet:
 def trmd_small(**kwargs: Any) -> RENet:
     """RE-Net sized for CPU inference at DAVIS346 resolution."""
     return _create_renet("trmd_small", **kwargs)
+
+
+@register_model
+def trmd_small_edi(**kwargs: Any) -> RENet:
+    """``trmd_small`` given EDI's frames for a ladder of contrasts as extra inputs."""
+    return _create_renet("trmd_small_edi", **kwargs)
 
 
 @register_model
