@@ -311,3 +311,11 @@ def test_window_outside_the_events_is_bad_input(sample):
     assert len(plan.windows) == 2 and any("outside" in w for w in plan.warnings)
     with pytest.raises(InputError, match="no events"):
         resolve_windows(_memory(EventStream.empty(W, H)))
+
+
+def test_help_names_the_real_default_method():
+    # the help text holds a literal (importing the pipeline for --help would be slow)
+    from trmd_cli.cli.deblur import _DEFAULT_METHOD_HELP
+    from trmd_cli.pipeline import DEFAULT_METHOD
+
+    assert _DEFAULT_METHOD_HELP == DEFAULT_METHOD

@@ -14,7 +14,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import h5py
@@ -26,10 +25,11 @@ from trmd_cli.cli.app import app
 from trmd_cli.events import make_stream
 from trmd_cli.write import sweep_stale_temps, write_events_npz, write_h5
 
+from ._procs import PREVIOUS, finish, launch, temps, wait_until
+
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="signals and /proc as on Linux")
 
-PREVIOUS = b"the user's previous output\n"
 W, H = 64, 48
 runner = CliRunner()
 
@@ -59,28 +59,6 @@ def windows_h5(tmp_path_factory) -> Path:
         f["frames/exposure_start"] = starts
         f["frames/exposure_end"] = starts + 3_000
     return path
-
-
-def temps(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.iterdir() if ".tmp" in p.name)
-
-
-def launch(*args: str) -> subprocess.Popen:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
-    return subprocess.Popen([sys.executable, "-m", "trmd_cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
-
-
-def wait_until(proc: subprocess.Popen, ready, what: str, timeout: float = 60.0) -> None:
-    end = time.monotonic() + timeout
-    while not ready():
-        if proc.poll() is not None:
-            out, err = proc.communicate()
-            pytest.fail(f"the run ended (rc {proc.returncode}) before {what}: {err}")
-        if time.monotonic() > end:
-            proc.kill()
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.002)
 
 
 def holds_open(pid: int, path: Path) -> bool:
@@ -115,7 +93,7 @@ def test_convert_interrupted_while_writing(tmp_path, big_npz, sig, code, word):
     proc = launch("convert", str(big_npz), "-o", str(out), "--overwrite")
     wait_until(proc, lambda: temps(tmp_path), "the temporary output appeared")
     proc.send_signal(sig)
-    _, err = proc.communicate(timeout=60)
+    err = finish(proc, timeout=60)
     assert proc.returncode == code, err
     assert word in one_line(err)
     assert out.read_bytes() == PREVIOUS
@@ -128,7 +106,7 @@ def test_convert_killed_leaves_a_temp_that_the_next_run_sweeps(tmp_path, big_npz
     proc = launch("convert", str(big_npz), "-o", str(out), "--overwrite")
     wait_until(proc, lambda: temps(tmp_path), "the temporary output appeared")
     proc.kill()
-    proc.communicate(timeout=60)
+    finish(proc, timeout=60)
     assert proc.returncode == -signal.SIGKILL
     assert out.read_bytes() == PREVIOUS
     # SIGKILL cannot be caught: its half-written temporary stays, named for output and process
@@ -150,7 +128,7 @@ def test_voxelize_interrupted_while_reading(tmp_path, windows_h5, sig):
     proc = launch("voxelize", str(windows_h5), "-o", str(out), "--n", "1", "--overwrite")
     wait_until(proc, lambda: holds_open(proc.pid, windows_h5), "the input was opened")
     proc.send_signal(sig)
-    _, err = proc.communicate(timeout=60)
+    err = finish(proc, timeout=60)
     if sig == signal.SIGINT:
         assert proc.returncode == 130 and "interrupted" in one_line(err), err
     else:

@@ -15,7 +15,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -27,10 +26,12 @@ from trmd_cli.cli.app import app
 from trmd_cli.events import Exposure, make_stream
 from trmd_cli.write import H5Writer
 
+from ._procs import PREVIOUS, finish, temps, wait_until
+from ._procs import launch as _launch
+
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="signals and /proc as on Linux")
 
-PREVIOUS = b"the user's previous output\n"
 W, H = 64, 48
 runner = CliRunner()
 
@@ -65,8 +66,9 @@ def short_rec(tmp_path_factory) -> Path:
 # -- helpers --------------------------------------------------------------------------------------
 
 
-def temps(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.iterdir() if ".tmp" in p.name)
+def launch(*args: str):
+    """``trmd ARGS --contrast 0.2`` in a process group of its own, as a shell job."""
+    return _launch(*args, "--contrast", "0.2", new_session=True)
 
 
 def previous_output(path: Path) -> dict[str, bytes]:
@@ -86,40 +88,6 @@ def snapshot(path: Path) -> dict[str, bytes]:
         return {"": path.read_bytes()}
     return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*"))
             if p.is_file()}
-
-
-def launch(*args: str) -> subprocess.Popen:
-    """``python -m trmd_cli ARGS --contrast 0.2`` as the leader of its own process group (like
-    a shell job). Output goes to unnamed files: a pipe nobody reads until the end would fill up
-    and block the run."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
-    out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
-    proc = subprocess.Popen([sys.executable, "-m", "trmd_cli", *args, "--contrast", "0.2"],
-                            stdout=out, stderr=err, text=True, env=env, start_new_session=True)
-    proc.logs = (out, err)  # type: ignore[attr-defined]
-    return proc
-
-
-def finish(proc: subprocess.Popen, timeout: float = 90.0) -> str:
-    """Wait for the run to end; its stderr."""
-    proc.wait(timeout=timeout)
-    out, err = proc.logs  # type: ignore[attr-defined]
-    err.seek(0)
-    text = err.read()
-    out.close()
-    err.close()
-    return text
-
-
-def wait_until(proc: subprocess.Popen, ready, what: str, timeout: float = 90.0) -> None:
-    end = time.monotonic() + timeout
-    while not ready():
-        if proc.poll() is not None:
-            pytest.fail(f"the run ended (rc {proc.returncode}) before {what}: {finish(proc)}")
-        if time.monotonic() > end:
-            proc.kill()
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.005)
 
 
 def children(pid: int) -> list[int]:

@@ -127,8 +127,42 @@ def test_training_set(tmp_path, still):
     assert len(ds) == 3 and ds[2]["sharp"].shape == (3, 1, 32, 32)
 
 
+def test_training_set_flags_pin_their_values(tmp_path, still):
+    out = tmp_path / "train.h5"
+    r = run("simulate", still, "-o", out, "--training-set", "--count", "4", "--crop", "32",
+            "--n", "1", "--contrast", "0.3", "--exposure-ms", "15", "--shot-noise", "0",
+            "--motion-px", "5")
+    assert r.exit_code == 0, r.output
+    with h5py.File(out, "r") as f:
+        g = f["frames"]
+        # recorded: the mean over the pixels' thresholds (mismatch σ ≤ 0.06 is still drawn)
+        np.testing.assert_allclose(g["contrast"][:], 0.3, atol=0.005)
+        np.testing.assert_array_equal(g["exposure_end"][:] - g["exposure_start"][:], 15_000)
+    # the default ranges really vary (the test above would pass vacuously otherwise)
+    out2 = tmp_path / "free.h5"
+    assert run("simulate", still, "-o", out2, "--training-set", "--count", "4", "--crop", "32",
+               "--n", "1").exit_code == 0
+    with h5py.File(out2, "r") as f:
+        assert np.ptp(f["frames"]["contrast"][:]) > 0.01
+        assert np.ptp(f["frames"]["exposure_end"][:] - f["frames"]["exposure_start"][:]) > 0
+
+
+def test_training_set_options_mapping():
+    from trmd_cli.cli.simulate import training_set_options
+
+    assert training_set_options() == {}
+    o = training_set_options(clean=True, contrast=0.2)
+    assert o["sensor_ranges"]["clean_prob"] == 1.0 and o["sensor_ranges"]["contrast"] == (0.2, 0.2)
+    assert o["read_noise"] == (0.0, 0.0)
+    o = training_set_options(leak=0.5, layers=0, motion_px=12)
+    assert o["sensor_ranges"]["leak_hz"] == (0.5, 0.5) and o["sensor_ranges"]["clean_prob"] == 0
+    assert o["motion"]["translation_px"] == 12 and o["motion"]["foreground_prob"] == 0
+    assert o["sensor_ranges"]["contrast"] == (0.1, 0.5)  # not given: the training range
+
+
 @pytest.mark.parametrize("args, message", [
     (["missing.png"], "not found"),
+    (["{still}", "--training-set", "--clean", "--leak", "1"], "--clean with --leak"),
     (["{folder}"], "needs its frame times"),
     (["{folder}", "--fps", "50", "--exposure-ms", "500"], "does not fit"),
     (["{still}", "--size", "abc"], "not WxH"),

@@ -32,7 +32,8 @@ from .options import (
     read_options,
 )
 
-#: Typer can only show a literal default; keep it in sync with pipeline.DEFAULT_METHOD
+#: a literal so --help need not import the pipeline; a test keeps it equal to
+#: pipeline.DEFAULT_METHOD
 _DEFAULT_METHOD_HELP = "trmd"
 
 Method = Annotated[str | None, typer.Option(

@@ -38,14 +38,15 @@ def simulate(
     fps: Annotated[float | None, typer.Option(
         "--fps", help="Frame folder or video: frames per second (video default: its own).")
     ] = None,
-    motion_px: Annotated[float, typer.Option(
-        "--motion-px", min=0, help="Still: largest camera translation per exposure, pixels.")
-    ] = 30.0,
-    rotation_deg: Annotated[float, typer.Option(
-        "--rotation-deg", min=0, help="Still: largest rotation per exposure, degrees.")] = 2.0,
-    layers: Annotated[int, typer.Option(
+    motion_px: Annotated[float | None, typer.Option(
+        "--motion-px", min=0, help="Still: largest camera translation per exposure, pixels "
+        "(default 30; --training-set: 70, log-uniform).")] = None,
+    rotation_deg: Annotated[float | None, typer.Option(
+        "--rotation-deg", min=0, help="Still: largest rotation per exposure, degrees "
+        "(default 2; --training-set: 3).")] = None,
+    layers: Annotated[int | None, typer.Option(
         "--layers", min=0, help="Still: up to this many independently moving foreground "
-        "layers (occlusion).")] = 0,
+        "layers (occlusion; default 0; --training-set: up to 2 in 30 % of samples).")] = None,
     contrast: Annotated[float | None, typer.Option(
         "--contrast", min=0.001, help="Mean contrast threshold, ON and OFF (default 0.25; "
         "0.2 with --clean).")] = None,
@@ -69,7 +70,8 @@ def simulate(
     seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 0,
     training_set: Annotated[bool, typer.Option(
         "--training-set", help="INPUT is an image or a folder of stills: write --count "
-        "randomised crop×crop training samples (motion, sensor and noise drawn per sample).")
+        "randomised crop×crop training samples (motion, sensor and noise drawn per sample; "
+        "a sensor, noise, motion or exposure flag given fixes that value for every sample).")
     ] = False,
     crop: Annotated[int, typer.Option("--crop", min=8, help="--training-set sample size.")] = 128,
     workers: Annotated[int, typer.Option(
@@ -103,18 +105,27 @@ def simulate(
         from ..simulate.pregen import pregenerate
 
         images = _still_images(input, IMAGE_EXTENSIONS)
+        pinned = training_set_options(
+            clean=clean, contrast=contrast, contrast_sigma=contrast_sigma,
+            shot_noise=shot_noise, hot_pixels=hot_pixels, refractory_us=refractory_us,
+            leak=leak, read_noise=read_noise, exposure_ms=exposure_ms, motion_px=motion_px,
+            rotation_deg=rotation_deg, layers=layers)
         with progress:
             task = progress.add_task("simulating", total=count)
             # gzip: events dominate the size (≈2 MB/sample raw at 128×128, ≈0.8 MB packed)
             pregenerate(images, output, count, n=n, crop=crop, seed=seed, overwrite=overwrite,
                         workers=workers, compression="gzip",
-                        progress=lambda d, t: progress.update(task, completed=d, total=t))
+                        progress=lambda d, t: progress.update(task, completed=d, total=t),
+                        **pinned)
         typer.echo(f"wrote {output}: {count} training sample(s) of {crop}×{crop}, N={n}, "
                    f"from {len(images)} image(s)")
         return
 
     sensor = _sensor_config(clean, contrast, contrast_sigma, shot_noise, hot_pixels,
                             refractory_us, leak)
+    motion_px = 30.0 if motion_px is None else motion_px
+    rotation_deg = 2.0 if rotation_deg is None else rotation_deg
+    layers = 0 if layers is None else layers
     rn = (0.0 if clean else 0.005) if read_noise is None else read_noise
     is_still = input.is_file() and input.suffix.lower() in IMAGE_EXTENSIONS
     settings = {"input": str(input), "n": n, "seed": seed, "sensor": sensor.to_dict(),
@@ -140,6 +151,63 @@ def _still_images(input: Path, exts) -> list[Path]:
     if not images:
         raise InputError("no images in the folder", path=input, hint="use " + ", ".join(exts))
     return images
+
+
+def training_set_options(*, clean: bool = False, contrast: float | None = None,
+                         contrast_sigma: float | None = None, shot_noise: float | None = None,
+                         hot_pixels: float | None = None, refractory_us: float | None = None,
+                         leak: float | None = None, read_noise: float | None = None,
+                         exposure_ms: float | None = None, motion_px: float | None = None,
+                         rotation_deg: float | None = None,
+                         layers: int | None = None) -> dict:
+    """``SimulatedDataset`` keywords for ``simulate --training-set``: a sensor, noise or exposure
+    flag given pins its range to that one value; a motion flag sets the largest motion, drawn
+    uniformly below it as for a still; flags left out keep the training ranges
+    (``SensorRanges()``, ``DATASET_MOTION``). ``--clean`` makes every sample's sensor ideal
+    (and read noise 0 unless ``--read-noise`` is given); noise flags cannot be combined with
+    it."""
+    from dataclasses import asdict, replace
+
+    from ..errors import InputError
+    from ..simulate.dataset import DATASET_MOTION, SensorRanges
+
+    noise = {"contrast_sigma": contrast_sigma, "shot_noise_hz": shot_noise,
+             "hot_pixel_fraction": hot_pixels, "refractory_us": refractory_us, "leak_hz": leak}
+    given = {k: float(v) for k, v in noise.items() if v is not None}
+    if clean and given:
+        flags = {"contrast_sigma": "--contrast-sigma", "shot_noise_hz": "--shot-noise",
+                 "hot_pixel_fraction": "--hot-pixels", "refractory_us": "--refractory-us",
+                 "leak_hz": "--leak"}
+        raise InputError(f"--clean with {', '.join(flags[k] for k in given)}: a training set's "
+                         "clean samples have no noise at all",
+                         hint="drop --clean to pin those noise values, or drop the noise flags")
+    ranges = {k: (v, v) for k, v in given.items()}
+    if contrast is not None:
+        ranges["contrast"] = (float(contrast), float(contrast))
+        ranges["on_off_ratio"] = (1.0, 1.0)
+    if given:
+        ranges["clean_prob"] = 0.0
+    if clean:
+        ranges["clean_prob"] = 1.0
+    out: dict = {}
+    if ranges:
+        out["sensor_ranges"] = asdict(replace(SensorRanges(), **ranges))
+    if read_noise is not None:
+        out["read_noise"] = (float(read_noise), float(read_noise))
+    elif clean:
+        out["read_noise"] = (0.0, 0.0)
+    if exposure_ms is not None:
+        out["exposure_ms"] = (float(exposure_ms), float(exposure_ms))
+    motion = {}
+    if motion_px is not None:
+        motion.update(translation_px=float(motion_px), log_magnitude=False)
+    if rotation_deg is not None:
+        motion["rotation_deg"] = float(rotation_deg)
+    if layers is not None:
+        motion.update(max_layers=int(layers), foreground_prob=1.0 if layers else 0.0)
+    if motion:
+        out["motion"] = asdict(replace(DATASET_MOTION, **motion))
+    return out
 
 
 def _sensor_config(clean: bool, contrast, contrast_sigma, shot_noise, hot_pixels,

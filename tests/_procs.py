@@ -1,0 +1,55 @@
+"""Helpers shared by the interrupt tests: real ``python -m trmd_cli`` runs, signalled mid-work."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+#: what a test puts where the run will write, to check it survives byte-identical
+PREVIOUS = b"the user's previous output\n"
+
+
+def temps(folder: Path) -> list[str]:
+    """Names of trmd's temporary outputs in ``folder``."""
+    return sorted(p.name for p in folder.iterdir() if ".tmp" in p.name)
+
+
+def launch(*args: str, new_session: bool = False) -> subprocess.Popen:
+    """``python -m trmd_cli ARGS``; ``new_session``: as the leader of its own process group (as a
+    shell job is). Output goes to unnamed files: a pipe nobody reads until the end would fill up
+    and block the run. Collect it with :func:`finish`."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
+    out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
+    proc = subprocess.Popen([sys.executable, "-m", "trmd_cli", *args], stdout=out, stderr=err,
+                            text=True, env=env, start_new_session=new_session)
+    proc.logs = (out, err)  # type: ignore[attr-defined]
+    return proc
+
+
+def finish(proc: subprocess.Popen, timeout: float = 90.0) -> str:
+    """Wait for the run to end; its stderr."""
+    proc.wait(timeout=timeout)
+    out, err = proc.logs  # type: ignore[attr-defined]
+    err.seek(0)
+    text = err.read()
+    out.close()
+    err.close()
+    return text
+
+
+def wait_until(proc: subprocess.Popen, ready, what: str, timeout: float = 90.0) -> None:
+    """Poll ``ready()`` until true; fail if the run ends first or ``timeout`` s pass."""
+    end = time.monotonic() + timeout
+    while not ready():
+        if proc.poll() is not None:
+            pytest.fail(f"the run ended (rc {proc.returncode}) before {what}: {finish(proc)}")
+        if time.monotonic() > end:
+            proc.kill()
+            pytest.fail(f"timed out waiting for {what}")
+        time.sleep(0.002)
