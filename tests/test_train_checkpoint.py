@@ -13,6 +13,7 @@ import torch
 from trmd_cli.errors import FormatError
 from trmd_cli.models import create_model
 from trmd_cli.train.checkpoint import (
+    is_checkpoint,
     load_checkpoint,
     read_checkpoint_state,
     save_checkpoint,
@@ -115,6 +116,28 @@ def test_checkpoint_of_another_architecture_is_refused(tmp_path):
     with pytest.raises(FormatError, match="does not fit"):
         load_checkpoint(path, model=other,
                         optimizer=torch.optim.Adam(other.parameters(), foreach=False))
+
+
+def test_init_from_another_runs_checkpoint_takes_its_weights_only(tmp_path):
+    from trmd_cli.train.loop import _load_init
+    from trmd_cli.train.recipe import apply_overrides, load_recipe
+    from trmd_cli.weights import save_weights
+
+    model, opt, _ = trained_pair(2)
+    ck = save_checkpoint(tmp_path / "ck.safetensors", model=model, optimizer=opt,
+                         state={"step": 2, "recipe": {"model": {"name": "test_trmd"}}})
+    weights = save_weights(tmp_path / "w.safetensors", model, meta={}, half=False)
+    assert is_checkpoint(ck) and not is_checkpoint(weights)
+    assert not is_checkpoint(tmp_path / "missing.safetensors")
+    recipe = apply_overrides(load_recipe(None), ['model.name="test_trmd"'])
+    torch.manual_seed(5)
+    fresh = create_model("test_trmd")
+    _load_init(fresh, ck, recipe)
+    for (k, a), b in zip(model.state_dict().items(), fresh.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k
+    other = create_model("test_trmd", feat_width=6)
+    with pytest.raises(FormatError, match="trained test_trmd"):
+        _load_init(other, ck, recipe)
 
 
 # --------------------------------------------------------------------------------------------

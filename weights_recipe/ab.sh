@@ -1,24 +1,36 @@
 #!/usr/bin/env bash
 # Equal-budget A/B runs behind the recipe's choices (results in README.md here).
-# Every arm: the recipe.toml of the shipped weights with one change, the same data, the same
-# seed, one CPU thread, the same wall-clock budget, all arms at once (so they share the machine
-# equally). Usage: RUNS=../runs bash weights_recipe/ab.sh ROUND  (ROUND: 1)
+# Every arm: the stage-1 recipe with one change, the same seed, one CPU thread, the same
+# wall-clock budget, all arms at once (so they share the machine equally), validated on the
+# pinned Kodak set. Usage: RUNS=../runs bash weights_recipe/ab.sh ROUND
+#   round 1: from scratch — the paper's inputs vs the EDI prior; attention normalisation; crop
+#   round 2: fine-tuning stage 1's checkpoint ($RUNS/shipped-v2-stage1) — which training data
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 RUNS=${RUNS:-$here/../../runs}
 round=${1:-1}
 minutes=${AB_MINUTES:-16}
-common=(--data "$RUNS/train_128.h5" --recipe "$here/recipe.toml"
+main="$RUNS/train_128.h5"
+hard="$RUNS/train_128_hard.h5"
+common=(--recipe "$here/recipe_stage1.toml"
         --set "data.val_data=$RUNS/valset_kodak24.h5" --set train.threads=1
         --set "train.time_budget_minutes=$minutes" --set train.steps=700
         --set optim.warmup_steps=50 --set train.val_every=100 --set train.checkpoint_every=100)
 declare -A arms
 case "$round" in
   1)
-    arms[paper_inputs]='--set model.name="trmd_small"'
-    arms[edi_prior]='--set model.name="trmd_small_edi"'
-    arms[edi_prior_attn_none]='--set model.name="trmd_small_edi" --set model.args.attn_norm="none"'
-    arms[edi_prior_crop96]='--set model.name="trmd_small_edi" --set data.crop=96 --set data.batch_size=14'
+    # (round 1 ran with the stage-1 recipe at 128×128 crops × 8 and model trmd_small_edi)
+    base="--data $main --set data.crop=128 --set data.batch_size=8"
+    arms[paper_inputs]="$base --set model.name=\"trmd_small\""
+    arms[edi_prior]="$base"
+    arms[edi_prior_attn_none]="$base --set model.args.attn_norm=\"none\""
+    arms[edi_prior_crop96]="--data $main --set data.crop=96 --set data.batch_size=14"
+    ;;
+  2)
+    ft="--init-weights $RUNS/shipped-v2-stage1/checkpoint.safetensors --set optim.lr=3e-4"
+    arms[main]="--data $main $ft"
+    arms[main_hard]="--data $main --data $hard $ft"
+    arms[hard]="--data $hard $ft"
     ;;
   *) echo "unknown round $round" >&2; exit 2 ;;
 esac

@@ -43,6 +43,10 @@ def main() -> None:
     ap.add_argument("--crop", type=int, default=128)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--motion-px", type=float, default=None,
+                    help="largest camera translation per exposure (default: DATASET_MOTION's 70)")
+    ap.add_argument("--zoom", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="source pixels per output pixel (default: SimulatedDataset's 1 2)")
     args = ap.parse_args()
     from trmd_cli.simulate.pregen import pregenerate
 
@@ -55,8 +59,17 @@ def main() -> None:
             el = time.time() - t0
             print(f"{done}/{total} samples, {done / el:.1f}/s, {el / 60:.1f} min", flush=True)
 
+    extra: dict = {}
+    if args.motion_px is not None:
+        from dataclasses import asdict, replace
+
+        from trmd_cli.simulate.dataset import DATASET_MOTION
+
+        extra["motion"] = asdict(replace(DATASET_MOTION, translation_px=args.motion_px))
+    if args.zoom is not None:
+        extra["zoom"] = tuple(args.zoom)
     pregenerate(images, args.output, args.count, workers=args.workers, compression="gzip",
-                progress=progress, crop=args.crop, seed=args.seed)
+                progress=progress, crop=args.crop, seed=args.seed, **extra)
     print(f"wrote {args.output} in {(time.time() - t0) / 60:.1f} min")
 
 

@@ -109,7 +109,8 @@ def train(
     resume: Annotated[bool, typer.Option(
         "--resume", help="Continue the run in --out from its checkpoint.")] = False,
     init_weights: Annotated[Path | None, typer.Option(
-        "--init-weights", help="Start from these weights (.safetensors) instead of random.")
+        "--init-weights", help="Start from these weights (.safetensors), or from the weights "
+        "in another run's checkpoint.safetensors, instead of random.")
     ] = None,
     set_: Annotated[list[str] | None, typer.Option(
         "--set", help="Change a recipe value, e.g. --set optim.lr=1e-3 --set train.steps=500. "

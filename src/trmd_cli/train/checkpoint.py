@@ -143,11 +143,44 @@ def read_checkpoint_state(path: str | Path) -> dict[str, Any]:
                           path=path) from None
     if META_KEY not in meta:
         raise FormatError("safetensors file is not a trmd training checkpoint", path=path,
-                          hint="--init-weights takes weight files; --resume needs a run folder")
+                          hint="--resume needs a run folder with its checkpoint.safetensors")
     doc = json.loads(meta[META_KEY])
     if doc.get("format") != CHECKPOINT_FORMAT:
         raise FormatError(f"checkpoint format {doc.get('format')} is not supported "
                           f"(this version reads {CHECKPOINT_FORMAT})", path=path)
+    return doc
+
+
+def is_checkpoint(path: str | Path) -> bool:
+    """True when ``path`` is a safetensors file written by :func:`save_checkpoint`."""
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return META_KEY in (f.metadata() or {})
+    except Exception:  # noqa: BLE001 - unreadable: not a checkpoint; the weights loader says why
+        return False
+
+
+def load_checkpoint_weights(path: str | Path, model: torch.nn.Module) -> dict[str, Any]:
+    """Only the model's weights from a checkpoint (fine-tuning from a run); its JSON state.
+
+    Raises:
+        FormatError: not a checkpoint, or its weights do not fit ``model``.
+    """
+    from safetensors import safe_open
+
+    doc = read_checkpoint_state(path)
+    with safe_open(str(path), framework="pt", device="cpu") as f:
+        weights = {k[len("model/"):]: f.get_tensor(k) for k in f.keys() if k.startswith("model/")}
+    try:
+        model.load_state_dict(weights, strict=True)
+    except RuntimeError as e:
+        model_name = doc.get("recipe", {}).get("model", {}).get("name")
+        raise FormatError(f"checkpoint weights do not fit this model "
+                          f"({str(e).splitlines()[0]})", path=path,
+                          hint=f"the run trained {model_name}: set model.name and model.args "
+                          "to match") from None
     return doc
 
 

@@ -272,7 +272,8 @@ def train(data: Sequence[str | Path] | None = None, *, recipe: Recipe | None = N
         recipe: None = the shipped default (or, when resuming, the run's own recipe).
         run_dir: output folder; created if missing.
         resume: continue from ``run_dir/checkpoint.safetensors``.
-        init_weights: a weights file (``save_weights`` format) to start from (fine-tuning).
+        init_weights: a weights file (``save_weights`` format) or another run's
+            ``checkpoint.safetensors`` to start from (fine-tuning; only the weights are taken).
         overrides: ``"section.key=value"`` changes to the recipe (on resume only keys in
             :data:`~.recipe.RESUME_SAFE_KEYS` may change).
         overwrite: start afresh in a ``run_dir`` that already holds a run.
@@ -537,7 +538,13 @@ def _write_outputs(run_dir: Path, history: Sequence[dict], title: str) -> None:
 
 
 def _load_init(model: torch.nn.Module, path: str | Path, recipe: Recipe) -> None:
+    """Start from a weights file, or from the weights in another run's checkpoint."""
     from ..weights import load_weights
+    from .checkpoint import is_checkpoint, load_checkpoint_weights
+
+    if is_checkpoint(path):
+        load_checkpoint_weights(path, model)
+        return
 
     src, meta = load_weights(path, expect_n=recipe.model.n,
                              expect_channels=recipe.model.channels)
