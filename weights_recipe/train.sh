@@ -21,7 +21,7 @@ stage() {  # stage NAME RECIPE ARGS…: train unless finished, resuming when pos
   shift 2
   [ -f "$run/final.safetensors" ] && return 0
   if [ -f "$run/checkpoint.safetensors" ]; then
-    trmd train --recipe "$recipe" --out "$run" --resume
+    trmd train --out "$run" --resume  # the run keeps its own recipe and data
   else
     trmd train --recipe "$recipe" --out "$run" --set "data.val_data=$val" "$@"
   fi
@@ -29,7 +29,7 @@ stage() {  # stage NAME RECIPE ARGS…: train unless finished, resuming when pos
 
 # stage 1: from scratch on the main set, stopped by its 60-minute budget at a high rate
 stage shipped-v2-stage1 "$here/recipe_stage1.toml" --data "$main"
-# stage 2: fine-tune stage 1's weights on the main and the heavier-blur sets (A/B round 2)
-stage shipped-v2 "$here/recipe.toml" --data "$main" --data "$hard" \
+# stage 2: fine-tune stage 1's weights on the heavier-blur set (A/B round 2)
+stage shipped-v2 "$here/recipe.toml" --data "$hard" \
   --init-weights "$RUNS/shipped-v2-stage1/checkpoint.safetensors"
 # then: python weights_recipe/ship.py "$RUNS/shipped-v2/final.safetensors" --valset "$val"

@@ -1,0 +1,43 @@
+"""The training curve of the shipped weights, both stages on one step axis.
+
+    python weights_recipe/curve.py -o docs/images/training_curve.png
+
+Reads ``shipped-v2-stage1_log.csv`` and ``shipped-v2_log.csv`` beside this script (copies of the
+runs' ``log.csv``); stage 2's steps are counted on from stage 1's last one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+
+def read_log(path: Path, offset: int = 0) -> list[dict]:
+    rows = []
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            row: dict = {"step": int(r["step"]) + offset}
+            for key in ("loss", "val_psnr_mid", "val_psnr_seq"):
+                row[key] = float(r[key]) if r.get(key) else None
+            rows.append(row)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("-o", "--output", type=Path, required=True)
+    args = ap.parse_args()
+    from trmd_cli.train.plots import write_curve
+
+    stage1 = read_log(HERE / "shipped-v2-stage1_log.csv")
+    stage2 = read_log(HERE / "shipped-v2_log.csv", offset=stage1[-1]["step"])
+    write_curve(args.output, stage1 + stage2,
+                title=f"shipped-v2 (stage 2 from step {stage1[-1]['step']})")
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()
