@@ -153,6 +153,18 @@ def _still_images(input: Path, exts) -> list[Path]:
     return images
 
 
+#: sensor noise fields (SensorConfig / SensorRanges) and the flags that set them, in the order
+#: of _noise_given's arguments
+_NOISE_FLAGS = {"contrast_sigma": "--contrast-sigma", "shot_noise_hz": "--shot-noise",
+                "hot_pixel_fraction": "--hot-pixels", "refractory_us": "--refractory-us",
+                "leak_hz": "--leak"}
+
+
+def _noise_given(*values: float | None) -> dict[str, float]:
+    """The noise flags given (not None), keyed by their sensor field."""
+    return {k: float(v) for k, v in zip(_NOISE_FLAGS, values, strict=True) if v is not None}
+
+
 def training_set_options(*, clean: bool = False, contrast: float | None = None,
                          contrast_sigma: float | None = None, shot_noise: float | None = None,
                          hot_pixels: float | None = None, refractory_us: float | None = None,
@@ -171,14 +183,10 @@ def training_set_options(*, clean: bool = False, contrast: float | None = None,
     from ..errors import InputError
     from ..simulate.dataset import DATASET_MOTION, SensorRanges
 
-    noise = {"contrast_sigma": contrast_sigma, "shot_noise_hz": shot_noise,
-             "hot_pixel_fraction": hot_pixels, "refractory_us": refractory_us, "leak_hz": leak}
-    given = {k: float(v) for k, v in noise.items() if v is not None}
+    given = _noise_given(contrast_sigma, shot_noise, hot_pixels, refractory_us, leak)
     if clean and given:
-        flags = {"contrast_sigma": "--contrast-sigma", "shot_noise_hz": "--shot-noise",
-                 "hot_pixel_fraction": "--hot-pixels", "refractory_us": "--refractory-us",
-                 "leak_hz": "--leak"}
-        raise InputError(f"--clean with {', '.join(flags[k] for k in given)}: a training set's "
+        raise InputError(f"--clean with {', '.join(_NOISE_FLAGS[k] for k in given)}: a "
+                         "training set's "
                          "clean samples have no noise at all",
                          hint="drop --clean to pin those noise values, or drop the noise flags")
     ranges = {k: (v, v) for k, v in given.items()}
@@ -217,9 +225,7 @@ def _sensor_config(clean: bool, contrast, contrast_sigma, shot_noise, hot_pixels
     from ..simulate import SensorConfig
 
     base = SensorConfig.clean() if clean else SensorConfig()
-    given = {"contrast_sigma": contrast_sigma, "shot_noise_hz": shot_noise,
-             "hot_pixel_fraction": hot_pixels, "refractory_us": refractory_us, "leak_hz": leak}
-    changes = {k: float(v) for k, v in given.items() if v is not None}
+    changes = _noise_given(contrast_sigma, shot_noise, hot_pixels, refractory_us, leak)
     if contrast is not None:
         changes["contrast_on"] = changes["contrast_off"] = float(contrast)
     return replace(base, **changes)

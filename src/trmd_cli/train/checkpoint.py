@@ -151,6 +151,11 @@ def read_checkpoint_state(path: str | Path) -> dict[str, Any]:
     return doc
 
 
+def _model_weights(tensors: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The model's state dict from a checkpoint's tensors (stored under ``model/``)."""
+    return {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
+
+
 def is_checkpoint(path: str | Path) -> bool:
     """True when ``path`` is a safetensors file written by :func:`save_checkpoint`."""
     from safetensors import safe_open
@@ -172,7 +177,7 @@ def load_checkpoint_weights(path: str | Path, model: torch.nn.Module) -> dict[st
 
     doc = read_checkpoint_state(path)
     with safe_open(str(path), framework="pt", device="cpu") as f:
-        weights = {k[len("model/"):]: f.get_tensor(k) for k in f.keys() if k.startswith("model/")}
+        weights = _model_weights({k: f.get_tensor(k) for k in f.keys() if k.startswith("model/")})
     try:
         model.load_state_dict(weights, strict=True)
     except RuntimeError as e:
@@ -196,7 +201,7 @@ def load_checkpoint(path: str | Path, *, model: torch.nn.Module,
 
     doc = read_checkpoint_state(path)
     tensors = load_file(str(path), device="cpu")
-    weights = {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
+    weights = _model_weights(tensors)
     try:
         model.load_state_dict(weights, strict=True)
         optimizer.load_state_dict(_optimizer_join(doc["optimizer"], tensors))
