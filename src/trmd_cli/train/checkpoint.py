@@ -8,7 +8,8 @@ checkpoint atomic as a whole — a run killed while saving leaves the previous c
 never a tensor file from one step beside a sidecar from another — and loading never unpickles.
 
 Entry names: ``model/<state-dict key>``, ``optim/<param index>/<state key>``, ``rng/torch``,
-``rng/numpy``, ``rng/cuda/<device>``.
+``rng/numpy``, ``rng/cuda/<device>``, and ``ema/<state-dict key>`` when the run averages its
+weights (``optim.ema``).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import torch
 
 from ..errors import FormatError
 from ..write import atomic_path
+from .ema import WeightAverage
 
 __all__ = ["save_checkpoint", "load_checkpoint", "read_checkpoint_state", "capture_rng",
            "restore_rng", "CHECKPOINT_FORMAT", "META_KEY"]
@@ -89,11 +91,11 @@ def _optimizer_join(js: dict[str, Any], tensors: dict[str, torch.Tensor]) -> dic
 
 def save_checkpoint(path: str | Path, *, model: torch.nn.Module,
                     optimizer: torch.optim.Optimizer, state: dict[str, Any],
-                    scaler: Any = None) -> Path:
+                    scaler: Any = None, ema: WeightAverage | None = None) -> Path:
     """Write model + optimiser + RNG + ``state`` (JSON-able) to ``path`` atomically.
 
     ``model`` is the bare module (not a DDP wrapper). Weights are saved in float32 whatever
-    the training precision, so resuming is exact.
+    the training precision, so resuming is exact. ``ema``: the run's weight average, if any.
     """
     from safetensors.torch import save_file
 
@@ -101,6 +103,10 @@ def save_checkpoint(path: str | Path, *, model: torch.nn.Module,
     tensors: dict[str, torch.Tensor] = {}
     for key, value in model.state_dict().items():
         tensors[f"model/{key}"] = value
+    if ema is not None:
+        for key, value in ema.state_dict().items():
+            tensors[f"ema/{key}"] = value
+        state = {**state, "ema_updates": ema.updates}
     optim_js, optim_t = _optimizer_split(optimizer)
     tensors.update(optim_t)
     rng_js, rng_t = capture_rng()
@@ -151,9 +157,10 @@ def read_checkpoint_state(path: str | Path) -> dict[str, Any]:
     return doc
 
 
-def _model_weights(tensors: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The model's state dict from a checkpoint's tensors (stored under ``model/``)."""
-    return {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
+def _model_weights(tensors: dict[str, torch.Tensor], prefix: str = "model/"
+                   ) -> dict[str, torch.Tensor]:
+    """A state dict from a checkpoint's tensors: the model's (``model/``) or its average's."""
+    return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
 
 
 def is_checkpoint(path: str | Path) -> bool:
@@ -170,6 +177,9 @@ def is_checkpoint(path: str | Path) -> bool:
 def load_checkpoint_weights(path: str | Path, model: torch.nn.Module) -> dict[str, Any]:
     """Only the model's weights from a checkpoint (fine-tuning from a run); its JSON state.
 
+    When the run kept a weight average (``optim.ema``) that is what is loaded: it is the
+    version the run validated and would have shipped.
+
     Raises:
         FormatError: not a checkpoint, or its weights do not fit ``model``.
     """
@@ -177,7 +187,10 @@ def load_checkpoint_weights(path: str | Path, model: torch.nn.Module) -> dict[st
 
     doc = read_checkpoint_state(path)
     with safe_open(str(path), framework="pt", device="cpu") as f:
-        weights = _model_weights({k: f.get_tensor(k) for k in f.keys() if k.startswith("model/")})
+        keys = list(f.keys())
+        prefix = "ema/" if any(k.startswith("ema/") for k in keys) else "model/"
+        weights = _model_weights({k: f.get_tensor(k) for k in keys if k.startswith(prefix)},
+                                 prefix)
     try:
         model.load_state_dict(weights, strict=True)
     except RuntimeError as e:
@@ -191,8 +204,9 @@ def load_checkpoint_weights(path: str | Path, model: torch.nn.Module) -> dict[st
 
 def load_checkpoint(path: str | Path, *, model: torch.nn.Module,
                     optimizer: torch.optim.Optimizer, scaler: Any = None,
+                    ema: WeightAverage | None = None,
                     restore_random: bool = True) -> dict[str, Any]:
-    """Restore model, optimiser, RNG and scaler in place; return the JSON state.
+    """Restore model, optimiser, RNG, scaler and weight average in place; return the JSON state.
 
     Raises:
         FormatError: not a checkpoint, or its tensors do not fit ``model``.
@@ -205,6 +219,8 @@ def load_checkpoint(path: str | Path, *, model: torch.nn.Module,
     try:
         model.load_state_dict(weights, strict=True)
         optimizer.load_state_dict(_optimizer_join(doc["optimizer"], tensors))
+        if ema is not None:
+            ema.load_state_dict(_model_weights(tensors, "ema/"), int(doc["ema_updates"]))
     except (RuntimeError, ValueError, KeyError) as e:
         raise FormatError(f"checkpoint does not fit this model/optimiser: "
                           f"{str(e).splitlines()[0]}", path=path,

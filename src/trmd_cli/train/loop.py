@@ -39,6 +39,7 @@ from ..errors import InputError, OutputExistsError, TrmdError, WeightsError
 from . import ddp
 from .checkpoint import load_checkpoint, read_checkpoint_state, save_checkpoint
 from .data import DataPlan, EpochSampler, build_data, set_epoch
+from .ema import WeightAverage
 from .losses import SUPERVISED, total_loss
 from .recipe import (
     RESUME_LENGTH_KEYS,
@@ -334,6 +335,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
     if tr.channels_last:
         model = model.to(memory_format=torch.channels_last)
     optimizer = _make_optimizer(model, r)
+    ema = WeightAverage(model, r.optim.ema) if r.optim.ema > 0 else None
     use_amp = tr.amp and dist.device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=use_amp) if use_amp else None
 
@@ -344,7 +346,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
     acc = [0.0, 0]  # running loss sum and count since the last log row
     if resumed is not None:
         doc = load_checkpoint(run_dir / CHECKPOINT, model=model, optimizer=optimizer,
-                              scaler=scaler)
+                              scaler=scaler, ema=ema)
         step, seconds_before = int(doc["step"]), float(doc["seconds"])
         history, best, last_val = doc["history"], doc["best"], doc["last_val"]
         acc = list(doc["loss_acc"])
@@ -353,8 +355,12 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
                          f"{doc.get('world')}: the batches differ from an uninterrupted run")
     elif init_weights is not None:
         _load_init(model, init_weights, r)
+        if ema is not None:
+            ema = WeightAverage(model, r.optim.ema)
 
     bare = model
+    # what is validated and written as best/final weights: the average when there is one
+    judged = ema.module if ema is not None else bare
     if dist.enabled:
         model = torch.nn.parallel.DistributedDataParallel(
             bare, device_ids=[dist.device.index] if dist.device.type == "cuda" else None)
@@ -391,7 +397,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
             return
         tv = clock()
         vb = r.data.batch_size if r.data.val_crop else 1
-        mid, seq, _ = evaluate(bare, plan.val, dist=dist, batch_size=vb, amp=use_amp)
+        mid, seq, _ = evaluate(judged, plan.val, dist=dist, batch_size=vb, amp=use_amp)
         val_time = clock() - tv
         last_val.update(psnr_mid=mid, psnr_seq=seq, step=step)
         reporter.validated(step=step, psnr_mid=mid, psnr_seq=seq)
@@ -399,7 +405,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
             best.update(psnr_mid=mid, psnr_seq=seq, step=step)
             if dist.is_main:
                 nonlocal best_path
-                best_path = _save_weights(run_dir / "best.safetensors", bare, r, data_paths,
+                best_path = _save_weights(run_dir / "best.safetensors", judged, r, data_paths,
                                           plan, step, total, bpe, elapsed(), last_val, best)
 
     def row(loss: float | None, lr: float, val: bool) -> None:
@@ -417,6 +423,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
         tc = clock()
         if dist.is_main:
             save_checkpoint(run_dir / CHECKPOINT, model=bare, optimizer=optimizer, scaler=scaler,
+                            ema=ema,
                             state={"step": step, "total_steps": total, "epoch": step // bpe,
                                    "skip": (step % bpe) * batch, "batches_per_epoch": bpe,
                                    "seconds": elapsed(), "history": history, "best": best,
@@ -473,6 +480,8 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
                     scaler.update()
                 else:
                     optimizer.step()
+                if ema is not None:
+                    ema.update(bare)
                 value = float(loss.detach())
                 if not math.isfinite(value) and scaler is None:
                     raise TrmdError(f"training diverged at step {step + 1} (loss {value})",
@@ -518,7 +527,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
         reporter.close()
 
     if stopped in ("done", "time_budget") and dist.is_main:
-        final_path = _save_weights(run_dir / "final.safetensors", bare, r, data_paths, plan,
+        final_path = _save_weights(run_dir / "final.safetensors", judged, r, data_paths, plan,
                                    step, total, bpe, elapsed(), last_val, best)
         if best_path is None and (run_dir / "best.safetensors").exists():
             best_path = run_dir / "best.safetensors"

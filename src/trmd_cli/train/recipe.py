@@ -101,6 +101,9 @@ class OptimSpec:
     schedule: str = "cosine"  # cosine | constant
     warmup_steps: int = 200
     min_lr: float = 1e-6
+    # exponential moving average of the weights, per step (0 = off); validation, best and
+    # final weights then use the average. 0.999 averages over about the last 1,000 steps.
+    ema: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -395,6 +398,7 @@ def _validate(r: Recipe, src) -> None:
     need(o.schedule in ("cosine", "constant"), "optim.schedule", "must be cosine or constant")
     need(o.warmup_steps >= 0, "optim.warmup_steps", "must be ≥ 0")
     need(0 <= o.min_lr <= o.lr, "optim.min_lr", "must be in [0, optim.lr]")
+    need(0 <= o.ema < 1, "optim.ema", "must be in [0, 1) (0 = off)", "0.999 is typical")
     need(t.steps >= 1 or t.epochs >= 1, "train.steps", "must be ≥ 1 (or set train.epochs)")
     need(t.epochs >= 0, "train.epochs", "must be ≥ 0")
     need(t.time_budget_minutes >= 0, "train.time_budget_minutes", "must be ≥ 0 (0 = none)")
