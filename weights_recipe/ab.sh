@@ -5,6 +5,9 @@
 # pinned Kodak set. Usage: RUNS=../runs bash weights_recipe/ab.sh ROUND
 #   round 1: from scratch — the paper's inputs vs the EDI prior; attention normalisation; crop
 #   round 2: fine-tuning stage 1's checkpoint ($RUNS/shipped-v2-stage1) — which training data
+#   round 3: fine-tuning a first stage-3 attempt stopped at step 2000 ($RUNS/shipped-v3-partial:
+#            recipe_stage3.toml with model trmd_small_edi) on both sets with
+#            a weight average — the fixed contrast ladder vs the ladder around a given c
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 RUNS=${RUNS:-$here/../../runs}
@@ -31,6 +34,13 @@ case "$round" in
     arms[main]="--data $main $ft"
     arms[main_hard]="--data $main --data $hard $ft"
     arms[hard]="--data $hard $ft"
+    ;;
+  3)
+    ft="--init-weights $RUNS/shipped-v3-partial/checkpoint.safetensors --data $main --data $hard"
+    ft="$ft --set optim.lr=2e-4 --set optim.ema=0.999 --set train.steps=800"
+    ft="$ft --set train.val_every=200"
+    arms[ladder_fixed]="$ft"
+    arms[ladder_given_c]="$ft --set model.name=\"trmd_small_edi_c\""
     ;;
   *) echo "unknown round $round" >&2; exit 2 ;;
 esac

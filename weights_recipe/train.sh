@@ -32,7 +32,8 @@ stage shipped-v2-stage1 "$here/recipe_stage1.toml" --data "$main"
 # stage 2: fine-tune stage 1's weights on the heavier-blur set (A/B round 2)
 stage shipped-v2 "$here/recipe.toml" --data "$hard" \
   --init-weights "$RUNS/shipped-v2-stage1/checkpoint.safetensors"
-# stage 3: continue on both sets with a fresh cosine and a weight average (95 min)
+# stage 3: the ladder around a given c (A/B round 3), both sets, a fresh cosine and a weight
+# average (85 min)
 stage shipped-v3 "$here/recipe_stage3.toml" --data "$main" --data "$hard" \
   --init-weights "$RUNS/shipped-v2/checkpoint.safetensors"
 # then: python weights_recipe/ship.py "$RUNS/shipped-v3/final.safetensors" --valset "$val"

@@ -585,7 +585,8 @@ class _Runner:
             return out
         if method == "trmd":
             if frame.bins is not None:
-                return _Output(self.trmd.model(frame.blurry, frame.voxels(self.n)), None)
+                c = self.auto_contrast(frame) if self.trmd.model.needs_contrast else None
+                return _Output(self.trmd.model(frame.blurry, frame.voxels(self.n), c), c)
             return self._deblur(frame, self.trmd)
         raise InputError(f"unknown method {method!r}", hint=f"choose from {', '.join(METHODS)}")
 

@@ -67,8 +67,9 @@ class MethodConfig:
     Attributes:
         method: ``"edi"`` or ``"trmd"``.
         n: 2N+1 latent frames; None = 3 for EDI, the weights' N for TRMD.
-        contrast: EDI's contrast threshold c; None = estimate it per frame. TRMD uses it only
-            to place frames at instants between its own (event integration).
+        contrast: EDI's contrast threshold c; None = estimate it per frame. TRMD uses it as an
+            input when its weights take one (``trmd_small_edi_c``, the shipped default) and to
+            place frames at instants between its own (event integration).
         hot_pixels: ignore the events of hot pixels (see :func:`trmd_cli.edi.hot_pixel_mask`).
         weights, device, threads: TRMD only (see ``TrmdEstimator.load``).
     """
@@ -98,7 +99,7 @@ class Estimate:
     Attributes:
         frames: (K, H, W[, 3]) float32, not clipped.
         instants_us: (K,) float64 µs, the time of each frame.
-        contrast: c used (EDI, or TRMD's in-between frames); None if none was needed.
+        contrast: c used (EDI; TRMD's input or its in-between frames); None if none was needed.
         contrast_estimated: c came from :func:`trmd_cli.threshold.search_contrast`.
         contrast_reliable: False when too few events to estimate (a default was used).
         hot_pixels: number of pixels whose events were ignored.
@@ -156,8 +157,9 @@ class EdiMethod:
 
 
 class TrmdMethod:
-    """TRMD (RE-Net residuals + reconstruction). Instants other than its 2N+1 are propagated
-    from the nearest reconstructed frame by event integration (needs c: given or estimated)."""
+    """TRMD (RE-Net residuals + reconstruction). Weights that take the threshold c get it given
+    or estimated as EDI's; instants other than the 2N+1 are propagated from the nearest
+    reconstructed frame by event integration (with the same c)."""
 
     name = "trmd"
 
@@ -178,21 +180,25 @@ class TrmdMethod:
 
         b = check_blurry(blurry, events.width, events.height)
         grid = exposure.instants_us(self.n)
-        frames = self.model(b, scer_voxels(events, exposure, self.n))
         inst = grid if instants_us is None else np.asarray(instants_us, np.float64)
         nearest = np.abs(inst[:, None] - grid[None]).argmin(axis=1)
         exact = np.isclose(inst, grid[nearest], atol=0.5)
-        if exact.all() and not self.always_contrast:
+        # c is settled first when the network takes it, or in-between instants need it
+        settle = self.model.needs_contrast or not exact.all() or self.always_contrast
+        c, estimated, reliable, hot = None, False, True, None
+        if settle:
+            _, c, estimated, reliable, hot = self._edi.prepare(b, events, exposure)
+        frames = self.model(b, scer_voxels(events, exposure, self.n), c)
+        if not settle:
             return Estimate(frames[nearest], inst, None)
-        _, c, estimated, reliable, hot = self._edi.prepare(b, events, exposure)
+        n_hot = 0 if hot is None else int(hot.sum())
         if exact.all():
-            return Estimate(frames[nearest], inst, c, estimated, reliable,
-                            0 if hot is None else int(hot.sum()))
+            return Estimate(frames[nearest], inst, c, estimated, reliable, n_hot)
         out = np.empty((len(inst), *frames.shape[1:]), np.float32)
         for k in np.unique(nearest):
             sel = nearest == k
             out[sel] = propagate(frames[k], events, grid[k], inst[sel], c, hot)
-        return Estimate(out, inst, c, estimated, reliable, 0 if hot is None else int(hot.sum()))
+        return Estimate(out, inst, c, estimated, reliable, n_hot)
 
 
 def make_method(config: MethodConfig) -> Method:

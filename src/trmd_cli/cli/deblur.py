@@ -43,7 +43,8 @@ NOpt = Annotated[int | None, typer.Option(
     "--n", min=1, max=16, help="Latent frames 2N+1 per exposure (default 3 → 7 frames; TRMD: "
     "the weights' N).")]
 Contrast = Annotated[str, typer.Option(
-    "--contrast", help="EDI contrast threshold c, or 'auto' to estimate it per frame.")]
+    "--contrast", help="Event contrast threshold c (used by EDI and by TRMD), or 'auto' to "
+    "estimate it per frame.")]
 TimeOffset = Annotated[str | None, typer.Option(
     "--time-offset", help="Shift the exposure window(s) relative to the events, e.g. -40ms "
     "(real DAVIS data often needs tens of ms).")]

@@ -87,12 +87,20 @@ class TrmdEstimator:
         """Short SHA-256 of the weights file (None for a model given directly)."""
         return self._hash
 
-    def __call__(self, blurry: np.ndarray, voxels: np.ndarray) -> np.ndarray:
+    @property
+    def needs_contrast(self) -> bool:
+        """The network takes the sensor's contrast threshold with every frame."""
+        return bool(getattr(self.model, "needs_contrast", False))
+
+    def __call__(self, blurry: np.ndarray, voxels: np.ndarray,
+                 contrast: float | None = None) -> np.ndarray:
         """Latent frames from a blurry frame and its SCER voxels.
 
         Args:
             blurry: (H, W) gray or (H, W, 3) RGB, float [0, 1].
             voxels: (2N, H, W) SCER voxels (:func:`trmd_cli.voxel.scer_voxels`), N = ``self.n``.
+            contrast: the threshold c (log intensity per event); required when
+                :attr:`needs_contrast`, ignored otherwise.
         Returns:
             (2N+1, H, W) or (2N+1, H, W, 3) float32, time order k = 0..2N, not clipped (callers
             clip when writing images). The mean over frames equals ``blurry``.
@@ -117,6 +125,10 @@ class TrmdEstimator:
                              f"N = {voxels.shape[0] // 2}")
         if not (np.isfinite(blurry).all() and np.isfinite(voxels).all()):
             raise InputError("the frame or the voxels contain NaN or infinite values")
+        if self.needs_contrast and not (contrast is not None and np.isfinite(contrast)
+                                        and contrast > 0):
+            raise InputError(f"these weights need the contrast threshold c, got {contrast}",
+                             hint="give a positive c (the pipeline estimates it per frame)")
 
         rgb = blurry.ndim == 3
         # model input: (batch, C_model, H, W); a batch of 3 runs a gray model per colour channel
@@ -132,7 +144,7 @@ class TrmdEstimator:
         with torch.inference_mode():
             tb = torch.from_numpy(np.ascontiguousarray(b)).to(self.device)
             tv = torch.from_numpy(voxels).to(self.device)[None].expand(b.shape[0], -1, -1, -1)
-            latent = reconstruct(tb, self.model(tb, tv))  # (batch, 2N+1, C, H, W)
+            latent = reconstruct(tb, self.model(tb, tv, contrast))  # (batch, 2N+1, C, H, W)
             out = latent.float().cpu().numpy()
 
         if rgb and self.channels == 1:

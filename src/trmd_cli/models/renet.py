@@ -38,8 +38,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..errors import InputError, check_shape
-from .prior import DEFAULT_CONTRASTS, edi_prior
+from ..errors import InputError, ShapeError, check_shape
+from .prior import DEFAULT_CONTRASTS, RELATIVE_CONTRASTS, edi_prior
 from .registry import register_model
 
 __all__ = [
@@ -68,7 +68,7 @@ ATTN_NORMS = ("none", "spatial", "l2")
 #: normalisation layers inside the network
 NORMS = ("batch", "none")
 #: physical priors the network can be given besides B and V (see :mod:`trmd_cli.models.prior`)
-PRIORS = ("none", "edi")
+PRIORS = ("none", "edi", "edi_c")
 #: number of stride-2 stages; inputs are padded to a multiple of 2**_DOWNS
 _DOWNS = 4
 
@@ -305,7 +305,10 @@ class RENet(nn.Module):
             edi_prior`), join B's and V's inputs to the feature extractors and to the head, and
             the head starts out returning EDI's residuals at ``prior_contrasts[1]`` — training
             begins at EDI's quality and learns the correction. A departure from the paper.
-        prior_contrasts: the contrast ladder of the prior (log-intensity per event).
+            ``"edi_c"``: the same, with the ladder scaled by a contrast threshold given with
+            every frame (``forward(..., contrast=c)``; :attr:`needs_contrast`).
+        prior_contrasts: the contrast ladder of the prior (log-intensity per event); for
+            ``"edi_c"``, multiples of the given threshold.
 
     Shapes:
         blurry (B, C, H, W), voxels (B, 2N, H, W) → residuals (B, 2N, C, H, W), any H, W ≥ 1.
@@ -322,7 +325,7 @@ class RENet(nn.Module):
     def __init__(self, n: int = 3, channels: int = 1, feat_width: int = 32,
                  widths: Sequence[int] = (64, 128, 256, 512), num_res_blocks: int = 2,
                  norm: str = "batch", attn_norm: str = "none", prior: str = "none",
-                 prior_contrasts: Sequence[float] = DEFAULT_CONTRASTS) -> None:
+                 prior_contrasts: Sequence[float] | None = None) -> None:
         super().__init__()
         widths = tuple(int(w) for w in widths)
         if n < 1:
@@ -338,8 +341,10 @@ class RENet(nn.Module):
             raise InputError(f"attn_norm {attn_norm!r} is not one of {', '.join(ATTN_NORMS)}")
         if prior not in PRIORS:
             raise InputError(f"prior {prior!r} is not one of {', '.join(PRIORS)}")
+        if prior_contrasts is None:
+            prior_contrasts = RELATIVE_CONTRASTS if prior == "edi_c" else DEFAULT_CONTRASTS
         contrasts = tuple(float(c) for c in prior_contrasts)
-        if prior == "edi" and (len(contrasts) < 2 or min(contrasts) <= 0):
+        if prior != "none" and (len(contrasts) < 2 or min(contrasts) <= 0):
             raise InputError(f"prior_contrasts must be ≥ 2 positive thresholds, got {contrasts}")
         #: every constructor argument, JSON-friendly: what weights metadata records
         self.args: dict[str, Any] = dict(n=n, channels=channels, feat_width=feat_width,
@@ -351,7 +356,7 @@ class RENet(nn.Module):
         self.variant: str | None = None
         self.n, self.channels = n, channels
         self.prior = prior
-        self.prior_contrasts = contrasts if prior == "edi" else ()
+        self.prior_contrasts = contrasts if prior != "none" else ()
         m = 2 * n
         k = len(self.prior_contrasts)
         w0, w1, w2, w3 = widths
@@ -382,7 +387,7 @@ class RENet(nn.Module):
         residuals at the second contrast of the ladder (an identity from those inputs)."""
         nn.init.normal_(self.head.weight, std=1e-3)
         nn.init.zeros_(self.head.bias)
-        if self.prior == "edi":
+        if self.prior != "none":
             m, c = 2 * self.n, self.channels
             # head input order: [features, B, middles (K·C), V (2N), residuals (K·2N·C)]
             first = self._head_skip + c * (1 + len(self.prior_contrasts)) + m + m * c
@@ -390,11 +395,21 @@ class RENet(nn.Module):
                 for j in range(m * c):
                     self.head.weight[j, first + j] += 1.0
 
-    def forward(self, blurry: torch.Tensor, voxels: torch.Tensor) -> torch.Tensor:
+    @property
+    def needs_contrast(self) -> bool:
+        """True when ``forward`` needs the sensor's contrast threshold (``prior="edi_c"``)."""
+        return self.prior == "edi_c"
+
+    def forward(self, blurry: torch.Tensor, voxels: torch.Tensor,
+                contrast: torch.Tensor | float | None = None) -> torch.Tensor:
         """Residuals (B, 2N, C, H, W) from blurry (B, C, H, W) and voxels (B, 2N, H, W).
+
+        ``contrast``: the threshold c (log intensity per event), a number or one per sample
+        (B,); used only by networks that need it (:attr:`needs_contrast`), ignored otherwise.
 
         Raises:
             ShapeError: channel counts differ from the model's, or sizes disagree.
+            InputError: the network needs ``contrast`` and got none or a non-positive one.
         """
         check_shape(blurry, ("B", self.channels, "H", "W"), "blurry")
         check_shape(voxels, (blurry.shape[0], 2 * self.n, blurry.shape[2], blurry.shape[3]),
@@ -405,8 +420,11 @@ class RENet(nn.Module):
         if any(pad):
             blurry = F.pad(blurry, pad, mode="replicate")
             voxels = F.pad(voxels, pad, mode="replicate")
-        if self.prior == "edi":
-            middle, residuals = edi_prior(blurry, voxels, self.prior_contrasts)
+        if self.prior != "none":
+            ladder: Any = self.prior_contrasts
+            if self.needs_contrast:
+                ladder = self._ladder(contrast, blurry)
+            middle, residuals = edi_prior(blurry, voxels, ladder)
             blurry = torch.cat([blurry, middle.flatten(1, 2)], 1)
             voxels = torch.cat([voxels, residuals.flatten(1, 3)], 1)
 
@@ -422,6 +440,23 @@ class RENet(nn.Module):
         x = self.up4(torch.cat([x, x1], 1))
         out = self.head(torch.cat([x, blurry, voxels], 1))[..., :h, :w]
         return out.reshape(out.shape[0], 2 * self.n, self.channels, h, w)
+
+    def _ladder(self, contrast: torch.Tensor | float | None, like: torch.Tensor) -> torch.Tensor:
+        """(B, K) thresholds: the given c times the relative ladder."""
+        if contrast is None:
+            raise InputError("this network needs the contrast threshold c with every frame",
+                             hint="pass contrast=… (the pipeline estimates it as EDI does)")
+        c = torch.as_tensor(contrast, dtype=torch.float32, device=like.device).reshape(-1)
+        if c.numel() == 1:
+            c = c.expand(like.shape[0])
+        if c.shape[0] != like.shape[0]:
+            raise ShapeError(f"got {c.shape[0]} contrast thresholds for a batch of "
+                             f"{like.shape[0]}")
+        if not bool(torch.isfinite(c).all() and (c > 0).all()):
+            raise InputError(f"contrast thresholds must be positive and finite, got "
+                             f"{c.tolist()[:4]}")
+        rel = torch.tensor(self.prior_contrasts, dtype=torch.float32, device=like.device)
+        return c[:, None] * rel[None]
 
     def extra_repr(self) -> str:
         prior = f", prior={self.prior!r}" if self.prior != "none" else ""
@@ -447,6 +482,9 @@ _variant_args: dict[str, dict[str, Any]] = {
     # trmd_small given the EDI prior (models/prior.py): a departure from the paper
     "trmd_small_edi": dict(feat_width=16, widths=(32, 64, 128, 256), num_res_blocks=2,
                            norm="batch", attn_norm="spatial", prior="edi"),
+    # trmd_small_edi with the ladder around a given threshold (estimated per frame in use)
+    "trmd_small_edi_c": dict(feat_width=16, widths=(32, 64, 128, 256), num_res_blocks=2,
+                             norm="batch", attn_norm="spatial", prior="edi_c"),
     # 13.5 k parameters: for tests only
     "test_trmd": dict(feat_width=4, widths=(4, 8, 8, 8), num_res_blocks=1,
                       norm="batch", attn_norm="spatial"),
@@ -487,6 +525,12 @@ def trmd_small(**kwargs: Any) -> RENet:
 def trmd_small_edi(**kwargs: Any) -> RENet:
     """``trmd_small`` given EDI's frames for a ladder of contrasts as extra inputs."""
     return _create_renet("trmd_small_edi", **kwargs)
+
+
+@register_model
+def trmd_small_edi_c(**kwargs: Any) -> RENet:
+    """``trmd_small_edi`` with the ladder scaled by a threshold given with every frame."""
+    return _create_renet("trmd_small_edi_c", **kwargs)
 
 
 @register_model

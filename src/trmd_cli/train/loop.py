@@ -126,6 +126,19 @@ def build_model(recipe: Recipe) -> torch.nn.Module:
                          hint="check the keys of [model.args]") from None
 
 
+def forward(model: torch.nn.Module, batch: dict[str, torch.Tensor], *, needs_contrast: bool,
+            jitter: float = 0.0, fallback_contrast: float = 0.2) -> torch.Tensor:
+    """The network's residuals for a batch; networks that take the threshold c get the batch's
+    true c (``fallback_contrast`` where unknown) times ``exp(N(0, jitter))``."""
+    if not needs_contrast:
+        return model(batch["blurry"], batch["voxels"])
+    c = batch["contrast"].to(batch["blurry"].device, torch.float32).reshape(-1)
+    c = torch.where(torch.isfinite(c) & (c > 0), c, torch.full_like(c, fallback_contrast))
+    if jitter > 0:
+        c = c * torch.exp(jitter * torch.randn(c.shape)).to(c.device)
+    return model(batch["blurry"], batch["voxels"], c)
+
+
 def _to_device(batch: dict[str, torch.Tensor], device: torch.device,
                channels_last: bool) -> dict[str, torch.Tensor]:
     out = {}
@@ -139,8 +152,12 @@ def _to_device(batch: dict[str, torch.Tensor], device: torch.device,
 
 @torch.no_grad()
 def evaluate(model: torch.nn.Module, dataset, *, dist: ddp.Dist | None = None,
-             batch_size: int = 1, amp: bool = False) -> tuple[float, float, int]:
+             batch_size: int = 1, amp: bool = False, fallback_contrast: float = 0.2
+             ) -> tuple[float, float, int]:
     """Mean validation PSNR (dB, data range 1, outputs clipped to [0, 1]) over ``dataset``.
+
+    Networks that take the threshold c get each sample's true c (``fallback_contrast`` where
+    the data has none) — in use they get an estimate, so this is slightly optimistic for them.
 
     Returns:
         (middle-frame PSNR, sequence PSNR = mean of the per-frame PSNRs, sample count); each
@@ -161,10 +178,11 @@ def evaluate(model: torch.nn.Module, dataset, *, dist: ddp.Dist | None = None,
         for start in range(0, len(idx), batch_size):
             items = [dataset[i] for i in idx[start:start + batch_size]]
             batch = {k: torch.stack([it[k] for it in items]).to(device) for k in
-                     ("blurry", "voxels", "sharp")}
+                     ("blurry", "voxels", "sharp", "contrast") if k in items[0]}
             with torch.autocast(device_type=device.type, dtype=torch.float16,
                                 enabled=amp and device.type == "cuda"):
-                residuals = model(batch["blurry"], batch["voxels"])
+                residuals = forward(model, batch, fallback_contrast=fallback_contrast,
+                                    needs_contrast=getattr(model, "needs_contrast", False))
             latent = reconstruct(batch["blurry"], residuals.float()).clamp(0.0, 1.0)
             sharp = batch["sharp"]
             b, frames = sharp.shape[:2]
@@ -359,6 +377,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
             ema = WeightAverage(model, r.optim.ema)
 
     bare = model
+    needs_contrast = bool(getattr(bare, "needs_contrast", False))
     # what is validated and written as best/final weights: the average when there is one
     judged = ema.module if ema is not None else bare
     if dist.enabled:
@@ -397,7 +416,8 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
             return
         tv = clock()
         vb = r.data.batch_size if r.data.val_crop else 1
-        mid, seq, _ = evaluate(judged, plan.val, dist=dist, batch_size=vb, amp=use_amp)
+        mid, seq, _ = evaluate(judged, plan.val, dist=dist, batch_size=vb, amp=use_amp,
+                               fallback_contrast=r.loss.contrast)
         val_time = clock() - tv
         last_val.update(psnr_mid=mid, psnr_seq=seq, step=step)
         reporter.validated(step=step, psnr_mid=mid, psnr_seq=seq)
@@ -463,7 +483,9 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
                 b = _to_device(raw, dist.device, tr.channels_last)
                 with torch.autocast(device_type=dist.device.type, dtype=torch.float16,
                                     enabled=use_amp):
-                    residuals = model(b["blurry"], b["voxels"])
+                    residuals = forward(model, b, needs_contrast=needs_contrast,
+                                        jitter=r.data.contrast_jitter,
+                                        fallback_contrast=r.loss.contrast)
                 residuals = residuals.float()
                 outputs = {"residuals": residuals, "latent": reconstruct(b["blurry"], residuals)}
                 loss, _ = total_loss(outputs, b, r)

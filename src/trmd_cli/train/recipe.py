@@ -87,6 +87,9 @@ class DataSpec:
     val_crop: int = 0  # centre crop of validation samples, 0 = whole frames
     simulator: dict[str, Any] = field(default_factory=dict)  # SimulatedDataset keywords
     augment: bool = True  # flips, transpose, time reversal of pre-generated training samples
+    # networks that take the threshold c (prior "edi_c") get the sample's true c times
+    # exp(N(0, σ)) in training, like the estimate they get in use; validation gets the true c
+    contrast_jitter: float = 0.15
 
 
 @dataclass(frozen=True)
@@ -398,6 +401,7 @@ def _validate(r: Recipe, src) -> None:
     need(o.schedule in ("cosine", "constant"), "optim.schedule", "must be cosine or constant")
     need(o.warmup_steps >= 0, "optim.warmup_steps", "must be ≥ 0")
     need(0 <= o.min_lr <= o.lr, "optim.min_lr", "must be in [0, optim.lr]")
+    need(d.contrast_jitter >= 0, "data.contrast_jitter", "must be ≥ 0 (0 = the true c)")
     need(0 <= o.ema < 1, "optim.ema", "must be in [0, 1) (0 = off)", "0.999 is typical")
     need(t.steps >= 1 or t.epochs >= 1, "train.steps", "must be ≥ 1 (or set train.epochs)")
     need(t.epochs >= 0, "train.epochs", "must be ≥ 0")
