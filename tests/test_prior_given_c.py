@@ -127,3 +127,16 @@ def test_training_forward_jitters_the_true_c(monkeypatch):
     torch.testing.assert_close(got[-1], torch.tensor([0.2, 0.25, 0.4, 0.3]) * factor)
     forward(Probe(), batch, needs_contrast=False)
     assert got[-1] is None
+
+
+def test_training_without_a_true_threshold_says_which_c_it_used(tmp_path):
+    from trmd_cli.train.loop import train
+
+    from .test_train_data import make_gopro_h5
+    from .test_train_loop import recipe
+
+    data = make_gopro_h5(tmp_path / "g.h5", k=8)  # the paper's layout: no threshold stored
+    r = recipe("model.name='test_trmd'", "model.args.prior='edi_c'", "train.steps=2",
+               "train.val_every=2", "loss.contrast=0.3")
+    res = train([data], recipe=r, run_dir=tmp_path / "run")
+    assert res.steps == 2 and any("loss.contrast = 0.3" in n for n in res.notes)

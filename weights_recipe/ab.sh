@@ -6,8 +6,10 @@
 #   round 1: from scratch — the paper's inputs vs the EDI prior; attention normalisation; crop
 #   round 2: fine-tuning stage 1's checkpoint ($RUNS/shipped-v2-stage1) — which training data
 #   round 3: fine-tuning a first stage-3 attempt stopped at step 2000 ($RUNS/shipped-v3-partial:
-#            recipe_stage3.toml with model trmd_small_edi) on both sets with
+#            recipe.toml with model trmd_small_edi) on both sets with
 #            a weight average — the fixed contrast ladder vs the ladder around a given c
+#   round 4: fine-tuning stage 3's result ($RUNS/shipped-v3) — sensor noise ranges: two
+#            2,000-sample sets that differ only in them ($RUNS/ab4/{wide,narrow}.h5, below)
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 RUNS=${RUNS:-$here/../../runs}
@@ -15,8 +17,8 @@ round=${1:-1}
 minutes=${AB_MINUTES:-16}
 main="$RUNS/train_128.h5"
 hard="$RUNS/train_128_hard.h5"
-common=(--recipe "$here/recipe_stage1.toml"
-        --set "data.val_data=$RUNS/valset_kodak24.h5" --set train.threads=1
+recipe="$here/recipe_stage1.toml"  # round 4 starts from stage 3's recipe instead
+common=(--set "data.val_data=$RUNS/valset_kodak24.h5" --set train.threads=1
         --set "train.time_budget_minutes=$minutes" --set train.steps=700
         --set optim.warmup_steps=50 --set train.val_every=100 --set train.checkpoint_every=100)
 declare -A arms
@@ -42,12 +44,23 @@ case "$round" in
     arms[ladder_fixed]="$ft"
     arms[ladder_given_c]="$ft --set model.name=\"trmd_small_edi_c\""
     ;;
+  4)
+    # python weights_recipe/make_trainset.py -o $RUNS/ab4/wide.h5 --count 2000 --seed 4
+    # the same with --sensor-range contrast_sigma 0.02 0.04 --sensor-range refractory_us 50 150
+    #   --sensor-range shot_noise_hz 0 0.2 --sensor-range leak_hz 0 0.1
+    #   --sensor-range hot_pixel_fraction 0 4e-5   (-o $RUNS/ab4/narrow.h5)
+    recipe="$here/recipe.toml"
+    ft="--init-weights $RUNS/shipped-v3/checkpoint.safetensors"
+    ft="$ft --set optim.lr=1e-4 --set train.steps=700 --set train.val_every=350"
+    arms[noise_wide]="$ft --data $RUNS/ab4/wide.h5"
+    arms[noise_narrow]="$ft --data $RUNS/ab4/narrow.h5"
+    ;;
   *) echo "unknown round $round" >&2; exit 2 ;;
 esac
 mkdir -p "$RUNS/ab$round"
 for name in "${!arms[@]}"; do
   # shellcheck disable=SC2086
-  nohup trmd train "${common[@]}" ${arms[$name]} --out "$RUNS/ab$round/$name" --overwrite \
+  nohup trmd train --recipe "$recipe" "${common[@]}" ${arms[$name]} --out "$RUNS/ab$round/$name" --overwrite \
     > "$RUNS/ab$round/$name.log" 2>&1 &
 done
 wait

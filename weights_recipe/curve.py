@@ -1,9 +1,11 @@
-"""The training curve of the shipped weights, both stages on one step axis.
+"""The training curve of the shipped weights, all three stages on one step axis.
 
     python weights_recipe/curve.py -o docs/images/training_curve.png
 
-Reads ``shipped-v2-stage1_log.csv`` and ``shipped-v2_log.csv`` beside this script (copies of the
-runs' ``log.csv``); stage 2's steps are counted on from stage 1's last one.
+Reads ``shipped-v2-stage1_log.csv``, ``shipped-v2_log.csv`` and ``shipped-v3_log.csv`` beside
+this script (copies of the runs' ``log.csv``); each stage's steps are counted on from the last
+one of the stage before. Stage 3 validates with the true threshold and an average of the
+weights; the figures in README.md use the estimated threshold.
 """
 
 from __future__ import annotations
@@ -34,8 +36,10 @@ def main() -> None:
 
     stage1 = read_log(HERE / "shipped-v2-stage1_log.csv")
     stage2 = read_log(HERE / "shipped-v2_log.csv", offset=stage1[-1]["step"])
-    write_curve(args.output, stage1 + stage2,
-                title=f"shipped-v2 (stage 2 from step {stage1[-1]['step']})")
+    stage3 = read_log(HERE / "shipped-v3_log.csv", offset=stage2[-1]["step"])
+    write_curve(args.output, stage1 + stage2 + stage3,
+                title=f"shipped-v3 (stage 2 from step {stage1[-1]['step']}, "
+                      f"stage 3 from {stage2[-1]['step']})")
     print(f"wrote {args.output}")
 
 

@@ -47,6 +47,9 @@ def main() -> None:
                     help="largest camera translation per exposure (default: DATASET_MOTION's 70)")
     ap.add_argument("--zoom", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                     help="source pixels per output pixel (default: SimulatedDataset's 1 2)")
+    ap.add_argument("--sensor-range", nargs=3, action="append", default=[],
+                    metavar=("FIELD", "LO", "HI"),
+                    help="override one SensorRanges field, e.g. --sensor-range leak_hz 0 0.1")
     args = ap.parse_args()
     from trmd_cli.simulate.pregen import pregenerate
 
@@ -68,6 +71,8 @@ def main() -> None:
         extra["motion"] = asdict(replace(DATASET_MOTION, translation_px=args.motion_px))
     if args.zoom is not None:
         extra["zoom"] = tuple(args.zoom)
+    if args.sensor_range:
+        extra["sensor_ranges"] = {f: (float(lo), float(hi)) for f, lo, hi in args.sensor_range}
     pregenerate(images, args.output, args.count, workers=args.workers, compression="gzip",
                 progress=progress, crop=args.crop, seed=args.seed, **extra)
     print(f"wrote {args.output} in {(time.time() - t0) / 60:.1f} min")

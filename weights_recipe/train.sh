@@ -30,10 +30,10 @@ stage() {  # stage NAME RECIPE ARGS…: train unless finished, resuming when pos
 # stage 1: from scratch on the main set, stopped by its 60-minute budget at a high rate
 stage shipped-v2-stage1 "$here/recipe_stage1.toml" --data "$main"
 # stage 2: fine-tune stage 1's weights on the heavier-blur set (A/B round 2)
-stage shipped-v2 "$here/recipe.toml" --data "$hard" \
+stage shipped-v2 "$here/recipe_stage2.toml" --data "$hard" \
   --init-weights "$RUNS/shipped-v2-stage1/checkpoint.safetensors"
 # stage 3: the ladder around a given c (A/B round 3), both sets, a fresh cosine and a weight
 # average (85 min)
-stage shipped-v3 "$here/recipe_stage3.toml" --data "$main" --data "$hard" \
+stage shipped-v3 "$here/recipe.toml" --data "$main" --data "$hard" \
   --init-weights "$RUNS/shipped-v2/checkpoint.safetensors"
 # then: python weights_recipe/ship.py "$RUNS/shipped-v3/final.safetensors" --valset "$val"

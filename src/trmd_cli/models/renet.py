@@ -597,7 +597,8 @@ def count_macs(model: RENet, h: int, w: int) -> int:
         model.eval()
         with torch.no_grad():
             model(torch.zeros(1, model.channels, h, w, device=p.device, dtype=p.dtype),
-                  torch.zeros(1, 2 * model.n, h, w, device=p.device, dtype=p.dtype))
+                  torch.zeros(1, 2 * model.n, h, w, device=p.device, dtype=p.dtype),
+                  0.25)  # a threshold, for networks that take one
     finally:
         for hd in handles:
             hd.remove()

@@ -139,6 +139,12 @@ def forward(model: torch.nn.Module, batch: dict[str, torch.Tensor], *, needs_con
     return model(batch["blurry"], batch["voxels"], c)
 
 
+def _has_true_contrast(dataset) -> bool:
+    """Whether samples carry their sensor's threshold (judged by the first one)."""
+    c = dataset[0].get("contrast") if len(dataset) else None
+    return c is not None and bool(torch.isfinite(torch.as_tensor(c)).all())
+
+
 def _to_device(batch: dict[str, torch.Tensor], device: torch.device,
                channels_last: bool) -> dict[str, torch.Tensor]:
     out = {}
@@ -378,6 +384,10 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
 
     bare = model
     needs_contrast = bool(getattr(bare, "needs_contrast", False))
+    if needs_contrast and not _has_true_contrast(plan.train):
+        notes.append(f"the training data stores no true contrast threshold: "
+                     f"{r.model.name} is given loss.contrast = {r.loss.contrast} "
+                     "(set it to your camera's, or train a network without it)")
     # what is validated and written as best/final weights: the average when there is one
     judged = ema.module if ema is not None else bare
     if dist.enabled:
