@@ -359,7 +359,9 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
     if tr.channels_last:
         model = model.to(memory_format=torch.channels_last)
     optimizer = _make_optimizer(model, r)
-    ema = WeightAverage(model, r.optim.ema) if r.optim.ema > 0 else None
+    # on resume the checkpoint's average replaces this copy; otherwise it starts from the
+    # initial weights, so it is made only after --init-weights is loaded
+    ema = WeightAverage(model, r.optim.ema) if r.optim.ema > 0 and resumed is not None else None
     use_amp = tr.amp and dist.device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=use_amp) if use_amp else None
 
@@ -379,8 +381,8 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
                          f"{doc.get('world')}: the batches differ from an uninterrupted run")
     elif init_weights is not None:
         _load_init(model, init_weights, r)
-        if ema is not None:
-            ema = WeightAverage(model, r.optim.ema)
+    if ema is None and r.optim.ema > 0:
+        ema = WeightAverage(model, r.optim.ema)
 
     bare = model
     needs_contrast = bool(getattr(bare, "needs_contrast", False))
