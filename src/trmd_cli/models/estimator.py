@@ -90,7 +90,7 @@ class TrmdEstimator:
     @property
     def needs_contrast(self) -> bool:
         """The network takes the sensor's contrast threshold with every frame."""
-        return bool(getattr(self.model, "needs_contrast", False))
+        return self.model.needs_contrast
 
     def __call__(self, blurry: np.ndarray, voxels: np.ndarray,
                  contrast: float | None = None) -> np.ndarray:
@@ -100,7 +100,8 @@ class TrmdEstimator:
             blurry: (H, W) gray or (H, W, 3) RGB, float [0, 1].
             voxels: (2N, H, W) SCER voxels (:func:`trmd_cli.voxel.scer_voxels`), N = ``self.n``.
             contrast: the threshold c (log intensity per event); required when
-                :attr:`needs_contrast`, ignored otherwise.
+                :attr:`needs_contrast` (the network refuses a missing or non-positive one),
+                ignored otherwise.
         Returns:
             (2N+1, H, W) or (2N+1, H, W, 3) float32, time order k = 0..2N, not clipped (callers
             clip when writing images). The mean over frames equals ``blurry``.
@@ -125,10 +126,6 @@ class TrmdEstimator:
                              f"N = {voxels.shape[0] // 2}")
         if not (np.isfinite(blurry).all() and np.isfinite(voxels).all()):
             raise InputError("the frame or the voxels contain NaN or infinite values")
-        if self.needs_contrast and not (contrast is not None and np.isfinite(contrast)
-                                        and contrast > 0):
-            raise InputError(f"these weights need the contrast threshold c, got {contrast}",
-                             hint="give a positive c (the pipeline estimates it per frame)")
 
         rgb = blurry.ndim == 3
         # model input: (batch, C_model, H, W); a batch of 3 runs a gray model per colour channel
