@@ -63,7 +63,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--warmup", type=int, default=2)
-    ap.add_argument("--end-to-end", default="trmd_small_edi_c",
+    ap.add_argument("--end-to-end", default="trmd_small_edi_c_fr",
                     help="variant for the end-to-end run (default: the shipped one)")
     args = ap.parse_args()
 

@@ -20,6 +20,7 @@ from trmd_cli.evaluate import (
     evaluate_dataset,
     interval_counts,
     parse_methods,
+    noise_sigma,
     sharpness,
 )
 from trmd_cli.events import make_stream
@@ -153,6 +154,24 @@ def test_ground_truth_with_another_n_names_the_right_n(gt_h5):
 
 # ---------------------------------------------------------------------------------------------
 # figures without ground truth
+
+
+def test_noise_sigma_of_white_noise_and_of_smooth_images():
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:200, 0:300] / 300.0
+    smooth = 0.2 + 0.3 * x + 0.1 * y + 0.2 * x * y  # bilinear: the kernel removes it exactly
+    assert noise_sigma(smooth) == pytest.approx(0.0, abs=1e-12)
+    # the kernel is a second difference along y times one along x: an edge along an axis is
+    # a function of one coordinate and vanishes; a diagonal edge counts on its two diagonals
+    assert noise_sigma(np.where(x > 0.5, 0.8, 0.2)) == 0.0
+    diag = np.where(np.arange(300)[None, :] > np.arange(200)[:, None] + 50, 0.8, 0.2)
+    assert 0 < noise_sigma(diag) < 0.6 * math.sqrt(math.pi / 2) * 3 / 298
+    for sigma in (0.01, 0.05):
+        noisy = smooth + rng.normal(0, sigma, smooth.shape)
+        assert noise_sigma(noisy) == pytest.approx(sigma, rel=0.03)
+    assert noise_sigma(np.stack([smooth + 0.0] * 3, -1)) == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(InputError):
+        noise_sigma(np.zeros((2, 9)))
 
 
 def test_sharpness_of_a_ramp_is_the_squared_slope():
@@ -312,7 +331,8 @@ def test_cli_table_and_json(gt_h5, nogt_h5, tmp_path):
     assert blurry["mean"]["psnr_mid"] == pytest.approx(
         np.mean([f["psnr_mid"] for f in blurry["per_frame"]]), abs=1e-5)
     assert set(blurry["per_frame"][0]) >= {"index", "psnr_mid", "psnr_seq", "ssim_mid",
-                                           "ssim_seq", "sharpness", "consistency", "seconds"}
+                                           "ssim_seq", "sharpness", "noise", "consistency",
+                                           "seconds"}
     assert d1["methods"]["edi-true-c"]["skipped"]
     # means pooled separately over the sets with and without ground truth
     with_gt, without = doc["overall"]["ground_truth"], doc["overall"]["no_ground_truth"]
@@ -388,4 +408,5 @@ def test_real_frames_without_ground_truth():
     assert rep.kind == "folder" and not rep.ground_truth
     b, e = rep.method("blurry").frames[0], rep.method("edi").frames[0]
     assert e.sharpness > 1.5 * b.sharpness
+    assert e.noise > b.noise  # EDI multiplies the sensor's noise into the frame
     assert e.consistency < b.consistency

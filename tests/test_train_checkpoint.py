@@ -152,6 +152,14 @@ def test_nice_ticks():
     assert log_ticks(1e-4, 10) == pytest.approx([1e-4, 1e-3, 1e-2, 0.1, 1, 10])
 
 
+def test_tick_labels_stay_distinct_on_long_step_axes():
+    from trmd_cli.train.plots import _fmt
+
+    labels = [_fmt(t) for t in nice_ticks(0, 26000, 6)]
+    assert labels == ["0", "5000", "10k", "15k", "20k", "25k"]
+    assert _fmt(2_500_000) == "2.5M" and _fmt(3e-3) == "3e-3" and _fmt(0.5) == "0.5"
+
+
 def _mask(img: np.ndarray, colour) -> np.ndarray:
     return np.all(np.abs(img.astype(int) - np.array(colour)) <= 30, axis=2)
 

@@ -82,6 +82,19 @@ def test_train_command_runs_and_summarises(setup, tmp_path):
     assert "trained 6/6 steps" in r.stdout
 
 
+def test_stop_after_leaves_a_run_to_resume(setup, tmp_path):
+    data, rec = setup
+    out = tmp_path / "run"
+    r = runner.invoke(app, ["train", "--data", str(data), "--recipe", str(rec), "--out", str(out),
+                            "--set", "train.steps=5", "--stop-after", "2"])
+    assert r.exit_code == 0, r.output
+    assert "trained 2/5 steps" in r.stdout and "--stop-after" in r.stdout
+    assert (out / "checkpoint.safetensors").exists() and not (out / "final.safetensors").exists()
+    r = runner.invoke(app, ["train", "--out", str(out), "--resume"])
+    assert r.exit_code == 0, r.output
+    assert "trained 5/5 steps" in r.stdout and (out / "final.safetensors").exists()
+
+
 @pytest.mark.parametrize("args, needle", [
     (["--recipe", "{bad}"], "did you mean 'lr'"),
     (["--set", "optim.lr=-1"], "optim.lr"),

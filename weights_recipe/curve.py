@@ -1,11 +1,11 @@
-"""The training curve of the shipped weights, all three stages on one step axis.
+"""The training curve of the shipped weights, all five stages on one step axis.
 
     python weights_recipe/curve.py -o docs/images/training_curve.png
 
-Reads ``shipped-v2-stage1_log.csv``, ``shipped-v2_log.csv`` and ``shipped-v3_log.csv`` beside
-this script (copies of the runs' ``log.csv``); each stage's steps are counted on from the last
-one of the stage before. Stage 3 validates with the true threshold and an average of the
-weights; the figures in README.md use the estimated threshold.
+Reads the stages' logs beside this script (copies of the runs' ``log.csv``: ``STAGES``); each
+stage's steps are counted on from the last one of the stage before. Stages 3–5 validate with
+the true threshold and an average of the weights; the figures in README.md use the estimated
+threshold.
 """
 
 from __future__ import annotations
@@ -15,6 +15,9 @@ import csv
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+#: the stages' logs in order (stage 4 was taken at step 2,000: its log ends there)
+STAGES = ("shipped-v2-stage1_log.csv", "shipped-v2_log.csv", "shipped-v3_log.csv",
+          "shipped-v4_log.csv", "shipped-v5_log.csv")
 
 
 def read_log(path: Path, offset: int = 0) -> list[dict]:
@@ -34,12 +37,13 @@ def main() -> None:
     args = ap.parse_args()
     from trmd_cli.train.plots import write_curve
 
-    stage1 = read_log(HERE / "shipped-v2-stage1_log.csv")
-    stage2 = read_log(HERE / "shipped-v2_log.csv", offset=stage1[-1]["step"])
-    stage3 = read_log(HERE / "shipped-v3_log.csv", offset=stage2[-1]["step"])
-    write_curve(args.output, stage1 + stage2 + stage3,
-                title=f"shipped-v3 (stage 2 from step {stage1[-1]['step']}, "
-                      f"stage 3 from {stage2[-1]['step']})")
+    rows: list[dict] = []
+    starts = []
+    for name in STAGES:
+        starts.append(rows[-1]["step"] if rows else 0)
+        rows += read_log(HERE / name, offset=starts[-1])
+    title = "shipped-v5, stages from steps " + ", ".join(str(s) for s in starts[1:])
+    write_curve(args.output, rows, title=title)
     print(f"wrote {args.output}")
 
 

@@ -47,6 +47,12 @@ def main() -> None:
                     help="largest camera translation per exposure (default: DATASET_MOTION's 70)")
     ap.add_argument("--zoom", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                     help="source pixels per output pixel (default: SimulatedDataset's 1 2)")
+    ap.add_argument("--exposure-ms", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="exposure time range (default: SimulatedDataset's 10 100)")
+    ap.add_argument("--gain", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="brightness factor range (default: SimulatedDataset's 0.25 1)")
+    ap.add_argument("--read-noise", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="σ range of the blurry frame's read noise (default: 0 0.02)")
     ap.add_argument("--sensor-range", nargs=3, action="append", default=[],
                     metavar=("FIELD", "LO", "HI"),
                     help="override one SensorRanges field, e.g. --sensor-range leak_hz 0 0.1")
@@ -71,6 +77,9 @@ def main() -> None:
         extra["motion"] = asdict(replace(DATASET_MOTION, translation_px=args.motion_px))
     if args.zoom is not None:
         extra["zoom"] = tuple(args.zoom)
+    for name in ("exposure_ms", "gain", "read_noise"):
+        if getattr(args, name) is not None:
+            extra[name] = tuple(getattr(args, name))
     if args.sensor_range:
         extra["sensor_ranges"] = {f: (float(lo), float(hi)) for f, lo, hi in args.sensor_range}
     pregenerate(images, args.output, args.count, workers=args.workers, compression="gzip",

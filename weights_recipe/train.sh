@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Reproduce the shipped default weights on 2 CPU cores (about 2 h 40 min including data).
+# Reproduce the shipped default weights on 2 CPU cores (about 5 h 30 min including data).
 # RUNS (default: ../runs beside the repo) holds data, checkpoints and logs — never the repo.
 # Run the script again to resume: each stage passes --resume when its checkpoint exists, and
 # a finished stage (final.safetensors written) is skipped.
@@ -15,6 +15,13 @@ hard="$RUNS/train_128_hard.h5"
 # more blur than the main set: larger motion, more detail per pixel (≈ 48 min on 2 cores)
 [ -f "$hard" ] || python "$here/make_trainset.py" -o "$hard" --count 6000 --workers 2 \
   --seed 2 --motion-px 100 --zoom 1.5 3.0
+# bright frames, short exposures, little read noise (≈ 12 min on 2 cores): the two sets above
+# draw gains 0.25–1 and exposures 10–100 ms, skewed towards dark, noisy frames
+bright="$RUNS/train_128_bright.h5"
+bright2="$RUNS/train_128_bright2.h5"
+brightargs=(--workers 2 --exposure-ms 10 40 --gain 0.6 1.0 --read-noise 0 0.005)
+[ -f "$bright" ] || python "$here/make_trainset.py" -o "$bright" --count 4000 --seed 3 "${brightargs[@]}"
+[ -f "$bright2" ] || python "$here/make_trainset.py" -o "$bright2" --count 6000 --seed 4 "${brightargs[@]}"
 
 stage() {  # stage NAME RECIPE ARGS…: train unless finished, resuming when possible
   local run="$RUNS/$1" recipe="$2"
@@ -34,6 +41,27 @@ stage shipped-v2 "$here/recipe_stage2.toml" --data "$hard" \
   --init-weights "$RUNS/shipped-v2-stage1/checkpoint.safetensors"
 # stage 3: the ladder around a given c (A/B round 3), both sets, a fresh cosine and a weight
 # average (85 min)
-stage shipped-v3 "$here/recipe.toml" --data "$main" --data "$hard" \
+stage shipped-v3 "$here/recipe_stage3.toml" --data "$main" --data "$hard" \
   --init-weights "$RUNS/shipped-v2/checkpoint.safetensors"
-# then: python weights_recipe/ship.py "$RUNS/shipped-v3/final.safetensors" --valset "$val"
+# stage 4: grow the full-resolution refinement (trmd_small_edi_c_fr) from stage 3's weights;
+# stopped after 2,000 steps of its 6,500-step cosine (stage 5 continues from there)
+at_step() {  # the step of a run's checkpoint, 0 when there is none
+  [ -f "$1/checkpoint.safetensors" ] || { echo 0; return; }
+  python -c "import sys; from trmd_cli.train.checkpoint import read_checkpoint_state as r; \
+print(r(sys.argv[1])['step'])" "$1/checkpoint.safetensors"
+}
+s4="$RUNS/shipped-v4"
+done4=$(at_step "$s4")
+if [ ! -f "$RUNS/shipped-v5/final.safetensors" ] && [ "$done4" -lt 2000 ]; then
+  if [ "$done4" -gt 0 ]; then
+    trmd train --out "$s4" --resume --stop-after $((2000 - done4))
+  else
+    trmd train --recipe "$here/recipe_stage4.toml" --out "$s4" --set "data.val_data=$val" \
+      --data "$main" --data "$hard" --init-weights "$RUNS/shipped-v3/checkpoint.safetensors" \
+      --stop-after 2000
+  fi
+fi
+# stage 5: all four sets, a fresh cosine (75 min): the shipped weights
+stage shipped-v5 "$here/recipe.toml" --data "$main" --data "$hard" --data "$bright" \
+  --data "$bright2" --init-weights "$s4/checkpoint.safetensors"
+# then: python weights_recipe/ship.py "$RUNS/shipped-v5/final.safetensors" --valset "$val"

@@ -13,6 +13,8 @@ Without ground truth (real recordings) two figures let users judge results on th
 
 * :func:`sharpness`: mean gradient energy of the middle frame (higher = sharper, but noise
   counts too: read it together with the next one);
+* :func:`noise_sigma`: Immerkær's estimate of the σ of white noise in the middle frame (lower =
+  cleaner; smooth intensity does not count): a noisy frame's sharpness is partly its noise;
 * :func:`consistency`: mean ``|Δlog L − c·E|`` between consecutive output frames over pixels that
   had events, with ``E`` the signed event count between the two instants and ``c`` the contrast
   used (lower = the frames move the way the events say). EDI builds its frames exactly this way,
@@ -58,6 +60,7 @@ __all__ = [
     "evaluate_dataset",
     "evaluate",
     "sharpness",
+    "noise_sigma",
     "consistency",
     "consistency_from_counts",
     "interval_counts",
@@ -86,7 +89,7 @@ _METHOD_NOTES = {
 }
 #: figures of :class:`FrameScore` that are averaged into means, in table order
 FIGURES = ("psnr_mid", "psnr_seq", "ssim_mid", "ssim_seq", "lpips_mid", "lpips_seq",
-           "sharpness", "consistency", "contrast", "seconds")
+           "sharpness", "noise", "consistency", "contrast", "seconds")
 
 
 # --------------------------------------------------------------------------------------------
@@ -112,6 +115,36 @@ def sharpness(image: np.ndarray) -> float:
     dx = np.diff(g, axis=1)
     dy = np.diff(g, axis=0)
     return float(np.mean(dx * dx) + np.mean(dy * dy))
+
+
+#: Immerkær's kernel: a second difference along y times one along x, so zero on any image
+#: f(x) + g(y) (edges along an axis, shading) and on bilinear intensity
+_IMMERKAER = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
+
+
+def noise_sigma(image: np.ndarray) -> float:
+    """σ of additive white noise, estimated as Immerkær (1996) does.
+
+    The image is filtered with a 3×3 kernel (second differences along both axes) that removes
+    smooth shading and edges along the axes; for white noise of σ the filtered values have
+    standard deviation 6σ, so ``σ = sqrt(π/2) · mean|filtered| / 6``. Oblique edges and texture
+    count a little: compare methods on the same frame rather than reading it as an absolute.
+
+    Args:
+        image: (H, W) or (H, W, 3) (colour averaged to gray first), [0, 1] intensity, H, W ≥ 3.
+    Returns:
+        σ in intensity units.
+    """
+    g = _gray(image)
+    if g.ndim != 2 or min(g.shape) < 3:
+        raise InputError(f"noise_sigma needs an (H, W) image with H, W ≥ 3, got "
+                         f"{np.shape(image)}")
+    h, w = g.shape
+    f = np.zeros((h - 2, w - 2))
+    for dy in range(3):
+        for dx in range(3):
+            f += _IMMERKAER[dy, dx] * g[dy:dy + h - 2, dx:dx + w - 2]
+    return float(math.sqrt(math.pi / 2) * np.abs(f).mean() / 6.0)
 
 
 def interval_counts(events: EventStream, instants_us: Sequence[float]) -> tuple[np.ndarray,
@@ -623,6 +656,7 @@ class FrameScore:
         ssim_mid, ssim_seq: SSIM of the middle frame and mean over the 2N+1 frames.
         lpips_mid, lpips_seq: LPIPS (AlexNet) when its weights are on disk, else None.
         sharpness: :func:`sharpness` of the middle output frame.
+        noise: :func:`noise_sigma` of the middle output frame.
         consistency: :func:`consistency` of the 2N+1 output frames with contrast ``contrast``.
         contrast: c the method used (EDI) or the reference c used for the consistency figure.
         seconds: wall time of the method on this frame (reading excluded).
@@ -637,6 +671,7 @@ class FrameScore:
     lpips_mid: float | None = None
     lpips_seq: float | None = None
     sharpness: float | None = None
+    noise: float | None = None
     consistency: float | None = None
     contrast: float | None = None
     seconds: float = 0.0
@@ -749,6 +784,7 @@ class EvalReport:
                 "ssim": {"window": "gaussian 11x11", "sigma": 1.5, "data_range": 1.0,
                          "sequence": "mean of the 2N+1 per-frame SSIMs"},
                 "sharpness": "mean squared forward differences of the middle frame (gray)",
+                "noise": "Immerkaer's white-noise sigma estimate of the middle frame (gray)",
                 "consistency": "mean |dlog L - c*E| over pixels with events, consecutive "
                                f"frames, intensities floored at {LOG_EPS}; c = the method's "
                                "own (EDI), else the true c, else EDI's estimate",
@@ -784,8 +820,8 @@ def _score(frame: EvalFrame, latent: np.ndarray, n: int, *, truth: bool, contras
            counts: tuple[np.ndarray, np.ndarray] | None, seconds: float, lpips=None
            ) -> FrameScore:
     out = np.clip(latent, 0.0, 1.0)
-    figs: dict[str, Any] = {"sharpness": sharpness(out[n]), "contrast": contrast,
-                            "seconds": seconds}
+    figs: dict[str, Any] = {"sharpness": sharpness(out[n]), "noise": noise_sigma(out[n]),
+                            "contrast": contrast, "seconds": seconds}
     if counts is not None and contrast is not None:
         figs["consistency"] = consistency_from_counts(out, counts[0], contrast, counts[1])
     if truth and frame.truth is not None:
@@ -893,11 +929,11 @@ def evaluate_dataset(
     with open_dataset(path, n, options) as src:
         if ground_truth and not src.has_ground_truth:
             raise InputError("holds no ground truth (sharp frames)", path=src.path,
-                             hint="evaluate it with --no-gt (sharpness and event consistency), "
-                                  "or give a set made by `trmd simulate`")
+                             hint="evaluate it with --no-gt (sharpness, noise and event "
+                                  "consistency), or give a set made by `trmd simulate`")
         use_gt = src.has_ground_truth if ground_truth is None else ground_truth
         if ground_truth is None and not use_gt:
-            notes.append(f"{src.path.name}: no ground truth: reporting sharpness and event "
+            notes.append(f"{src.path.name}: no ground truth: reporting sharpness, noise and event "
                          "consistency instead")
         notes.extend(src.notes)
         skipped: dict[str, str] = {}

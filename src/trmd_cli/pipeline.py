@@ -68,7 +68,7 @@ class MethodConfig:
         method: ``"edi"`` or ``"trmd"``.
         n: 2N+1 latent frames; None = 3 for EDI, the weights' N for TRMD.
         contrast: EDI's contrast threshold c; None = estimate it per frame. TRMD uses it as an
-            input when its weights take one (``trmd_small_edi_c``, the shipped default) and to
+            input when its weights take one (``prior="edi_c"``, as the shipped default) and to
             place frames at instants between its own (event integration).
         hot_pixels: ignore the events of hot pixels (see :func:`trmd_cli.edi.hot_pixel_mask`).
         weights, device, threads: TRMD only (see ``TrmdEstimator.load``).

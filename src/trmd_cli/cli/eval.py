@@ -27,7 +27,7 @@ _MAX_NOTES = 8
 _GT_COLUMNS = (("psnr_mid", "PSNR mid", "{:.2f}"), ("psnr_seq", "PSNR seq", "{:.2f}"),
                ("ssim_mid", "SSIM mid", "{:.4f}"), ("ssim_seq", "SSIM seq", "{:.4f}"))
 _LPIPS_COLUMNS = (("lpips_mid", "LPIPS mid", "{:.4f}"), ("lpips_seq", "LPIPS seq", "{:.4f}"))
-_NOGT_COLUMNS = (("sharpness", "sharpness", "{:.5f}"),
+_NOGT_COLUMNS = (("sharpness", "sharpness", "{:.5f}"), ("noise", "noise σ", "{:.4f}"),
                  ("consistency", "consistency err", "{:.4f}"), ("contrast", "c", "{:.3f}"))
 
 
@@ -47,7 +47,7 @@ def eval_command(
         "--weights", help="RE-Net weights (.safetensors) for trmd; default: the shipped "
                           "weights (trmd is skipped when there are none).")] = None,
     gt: Annotated[bool | None, typer.Option(
-        "--gt/--no-gt", help="Require ground truth, or judge without it (sharpness, event "
+        "--gt/--no-gt", help="Require ground truth, or judge without it (sharpness, noise, event "
                              "consistency). Default: whichever each dataset allows.")] = None,
     strip: Annotated[Path | None, typer.Option(
         "--strip", help="Write a compare strip (blurry | methods | ground truth) per frame "
@@ -61,7 +61,7 @@ def eval_command(
     sensor: Sensor = None,
 ) -> None:
     """Score deblurring methods: PSNR/SSIM against ground truth (middle frame and all 2N+1),
-    or sharpness and event consistency on real recordings without it."""
+    or sharpness, noise and event consistency on real recordings without it."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
     from ..evaluate import evaluate, parse_methods

@@ -119,6 +119,10 @@ def train(
     threads: Annotated[Optional[int], typer.Option(
         "--threads", min=1, help="CPU threads per process (default: the recipe's train.threads; "
         "0 there means cores / processes).")] = None,
+    stop_after: Annotated[Optional[int], typer.Option(
+        "--stop-after", min=1, metavar="STEPS", help="Stop after this many steps in this call, "
+        "checkpointed (continue later with --resume); the schedule keeps the recipe's length.")
+    ] = None,
     overwrite: Overwrite = False,
 ) -> None:
     """Train TRMD weights (RE-Net) as a recipe says; resumable, time-budgeted, DDP-ready."""
@@ -149,11 +153,13 @@ def train(
     reporter = _RichReporter(progress_enabled()) if is_main else _Quiet()
     result = run_training(data, recipe=rec, run_dir=out, resume=resume,
                           init_weights=init_weights, overrides=overrides or None,
-                          overwrite=overwrite, device=device, reporter=reporter)
+                          overwrite=overwrite, device=device, reporter=reporter,
+                          session_steps=stop_after)
     if not is_main:
         return
     why = {"done": "all steps done", "time_budget": "time budget used up",
-           "session_limit": "session limit"}[result.stopped]
+           "session_limit": "stopped as asked (--stop-after); continue with --resume"
+           }[result.stopped]
     typer.echo(f"trained {result.steps}/{result.total_steps} steps ({result.epochs:.2f} epochs) "
                f"in {_hms(result.seconds)}: {why}")
     if result.val_psnr_mid is not None:

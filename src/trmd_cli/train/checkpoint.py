@@ -174,11 +174,28 @@ def is_checkpoint(path: str | Path) -> bool:
         return False
 
 
+def load_init_state(model: torch.nn.Module, state: dict[str, torch.Tensor]) -> list[str]:
+    """Load starting weights into ``model``: exactly, or — for a network that can grow
+    (``load_grown``, e.g. a RE-Net with ``refine``) — with its new layers missing, which then
+    start as an identity. Returns the names of the layers that started so.
+
+    Raises:
+        RuntimeError: the weights do not fit (as ``load_state_dict``).
+    """
+    grow = getattr(model, "load_grown", None)
+    if grow is not None:
+        return list(grow(state))
+    model.load_state_dict(state, strict=True)
+    return []
+
+
 def load_checkpoint_weights(path: str | Path, model: torch.nn.Module) -> dict[str, Any]:
     """Only the model's weights from a checkpoint (fine-tuning from a run); its JSON state.
 
     When the run kept a weight average (``optim.ema``) that is what is loaded: it is the
-    version the run validated and would have shipped.
+    version the run validated and would have shipped. A network that can grow may lack layers
+    in the checkpoint (:func:`load_init_state`); their names are under ``"grown"`` in the
+    returned state.
 
     Raises:
         FormatError: not a checkpoint, or its weights do not fit ``model``.
@@ -192,7 +209,7 @@ def load_checkpoint_weights(path: str | Path, model: torch.nn.Module) -> dict[st
         weights = _model_weights({k: f.get_tensor(k) for k in keys if k.startswith(prefix)},
                                  prefix)
     try:
-        model.load_state_dict(weights, strict=True)
+        doc["grown"] = load_init_state(model, weights)
     except RuntimeError as e:
         model_name = doc.get("recipe", {}).get("model", {}).get("name")
         raise FormatError(f"checkpoint weights do not fit this model "

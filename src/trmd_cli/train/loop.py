@@ -380,7 +380,11 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
             notes.append(f"resumed with {dist.world} process(es), the run started with "
                          f"{doc.get('world')}: the batches differ from an uninterrupted run")
     elif init_weights is not None:
-        _load_init(model, init_weights, r)
+        grown = _load_init(model, init_weights, r)
+        if grown:
+            layers = sorted({k.split(".")[0] for k in grown})
+            notes.append(f"--init-weights had no {', '.join(layers)} layers: they start as an "
+                         "identity, so the run starts from exactly what those weights computed")
     if ema is None and r.optim.ema > 0:
         ema = WeightAverage(model, r.optim.ema)
 
@@ -580,19 +584,19 @@ def _write_outputs(run_dir: Path, history: Sequence[dict], title: str) -> None:
     write_curve(run_dir / "curve.png", history, title=title)
 
 
-def _load_init(model: torch.nn.Module, path: str | Path, recipe: Recipe) -> None:
-    """Start from a weights file, or from the weights in another run's checkpoint."""
+def _load_init(model: torch.nn.Module, path: str | Path, recipe: Recipe) -> list[str]:
+    """Start from a weights file, or from the weights in another run's checkpoint; the names
+    of layers the weights lacked and that start as an identity (:func:`load_init_state`)."""
     from ..weights import load_weights
-    from .checkpoint import is_checkpoint, load_checkpoint_weights
+    from .checkpoint import is_checkpoint, load_checkpoint_weights, load_init_state
 
     if is_checkpoint(path):
-        load_checkpoint_weights(path, model)
-        return
+        return list(load_checkpoint_weights(path, model).get("grown", []))
 
     src, meta = load_weights(path, expect_n=recipe.model.n,
                              expect_channels=recipe.model.channels)
     try:
-        model.load_state_dict(src.state_dict(), strict=True)
+        return load_init_state(model, src.state_dict())
     except RuntimeError as e:
         raise WeightsError(f"weights do not fit model {recipe.model.name!r} "
                            f"({str(e).splitlines()[0]})", path=path,

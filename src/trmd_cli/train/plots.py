@@ -57,7 +57,12 @@ def log_ticks(lo: float, hi: float) -> list[float]:
 def _fmt(v: float) -> str:
     if v == 0:
         return "0"
-    if abs(v) >= 1e4 or abs(v) < 1e-2:
+    # step axes: 15k, 20k, 25k (1 significant digit in e-notation would print all three as 2e4)
+    if abs(v) >= 1e6:
+        return f"{v / 1e6:.4g}M"
+    if abs(v) >= 1e4:
+        return f"{v / 1e3:.4g}k"
+    if abs(v) < 1e-2:
         return f"{v:.0e}".replace("e+0", "e").replace("e-0", "e-")
     return f"{v:g}"
 

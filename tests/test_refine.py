@@ -1,0 +1,116 @@
+"""The full-resolution refinement (``refine``): it starts as an identity, so weights trained
+without it carry over exactly; it learns from the first step; it is counted, saved and loaded;
+and a training run can grow a network from a run that had none."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from trmd_cli.errors import InputError
+from trmd_cli.models import count_macs, create_model
+from trmd_cli.train.loop import train
+from trmd_cli.train.recipe import apply_overrides
+from trmd_cli.weights import load_weights, save_weights
+
+from .test_train_data import make_gopro_h5
+from .test_train_loop import recipe
+
+
+def _inputs(seed: int = 5, b: int = 2, h: int = 21, w: int = 30):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(b, 1, h, w, generator=g),
+            torch.randint(-4, 5, (b, 6, h, w), generator=g).float())
+
+
+def _trained_like(name: str = "test_trmd", **kw) -> torch.nn.Module:
+    """A network whose weights are far from their initialisation (as after training)."""
+    torch.manual_seed(1)
+    net = create_model(name, **kw)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.2 * torch.randn_like(p))
+    return net.eval()
+
+
+@pytest.mark.parametrize("prior", ["none", "edi_c"])
+def test_grown_network_computes_what_the_weights_computed(prior):
+    old = _trained_like(prior=prior)
+    new = create_model("test_trmd", prior=prior, refine=3, refine_width=5).eval()
+    grown = new.load_grown(old.state_dict())
+    assert sorted({k.split(".")[1] for k in grown}) == ["0", "1", "2"]
+    assert all(k.startswith("refine.") for k in grown)
+    blurry, voxels = _inputs()
+    with torch.no_grad():
+        # the same arithmetic up to float rounding (a dirac conv adds exact zeros)
+        torch.testing.assert_close(new(blurry, voxels, 0.3), old(blurry, voxels, 0.3),
+                                   rtol=1e-6, atol=1e-6)
+
+
+def test_refinement_learns_from_the_first_step():
+    net = create_model("test_trmd", refine=2).train()
+    net.load_grown(_trained_like().state_dict())
+    blurry, voxels = _inputs()
+    net(blurry, voxels).square().mean().backward()
+    hs = net._head_skip
+    first = net.refine[0][0].weight.grad
+    # the fused features enter through weights that start at zero: they must get a gradient
+    assert first[:, hs:].abs().sum() > 0
+    assert net.refine[1][0].weight.grad.abs().sum() > 0
+
+
+def test_load_grown_refuses_other_mismatches():
+    old = _trained_like()
+    state = old.state_dict()
+    net = create_model("test_trmd", refine=1)
+    with pytest.raises(RuntimeError, match="missing"):
+        net.load_grown({k: v for k, v in state.items() if not k.startswith("head.")})
+    with pytest.raises(RuntimeError, match="unexpected"):
+        net.load_grown({**state, "extra.weight": torch.zeros(1)})
+    wide = create_model("test_trmd", feat_width=6, refine=1)
+    with pytest.raises(RuntimeError):
+        wide.load_grown(state)  # shapes differ: not a grown version of these weights
+
+
+def test_refine_arguments_are_checked():
+    with pytest.raises(InputError, match="refine_width"):
+        create_model("test_trmd", refine=2, refine_width=1)  # below the up-step's 2 channels
+    with pytest.raises(InputError, match="refine"):
+        create_model("test_trmd", refine=-1)
+    assert "refine" not in create_model("test_trmd").args  # older metadata stays valid
+
+
+def test_macs_count_the_refinement_by_hand():
+    base = create_model("test_trmd")
+    net = create_model("test_trmd", refine=2, refine_width=6)
+    hs, fw = net._head_skip, 4  # test_trmd: widths[0] // 2 = 2 channels, feat_width 4
+    h, w = 48, 64  # already a multiple of 16: no padding
+    hand = h * w * 9 * ((hs + fw) * 6 + 6 * hs)
+    assert count_macs(net, h, w) - count_macs(base, h, w) == hand
+
+
+def test_weights_round_trip_keeps_the_refinement(tmp_path):
+    net = _trained_like(refine=2, refine_width=3)
+    path = save_weights(tmp_path / "w.safetensors", net, half=False)
+    back, meta = load_weights(path)
+    assert back.args["refine"] == 2 and back.args["refine_width"] == 3
+    blurry, voxels = _inputs()
+    with torch.no_grad():
+        torch.testing.assert_close(back(blurry, voxels), net(blurry, voxels))
+
+
+def test_training_grows_a_network_from_a_run_without_refinement(tmp_path):
+    data = make_gopro_h5(tmp_path / "g.h5", k=12)
+    train([data], recipe=recipe("train.steps=2", "train.val_every=2"), run_dir=tmp_path / "a")
+    grow = apply_overrides(recipe(), ["model.args={refine=2}", "optim.lr=1e-12",
+                                      "optim.min_lr=0.0", "train.steps=1", "train.val_every=1"])
+    res = train([data], recipe=grow, run_dir=tmp_path / "b",
+                init_weights=tmp_path / "a" / "checkpoint.safetensors")
+    assert any("refine" in n and "identity" in n for n in res.notes)
+    a = load_file(str(tmp_path / "a" / "checkpoint.safetensors"))
+    b = load_file(str(tmp_path / "b" / "checkpoint.safetensors"))
+    assert any(k.startswith("model/refine.") for k in b)
+    for k, v in a.items():  # every old tensor carried over (a step at lr 1e-12 moves nothing)
+        if k.startswith("model/") and v.is_floating_point() and "running" not in k:
+            torch.testing.assert_close(b[k], v, atol=1e-6, rtol=0, msg=k)
