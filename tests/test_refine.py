@@ -68,6 +68,10 @@ def test_load_grown_refuses_other_mismatches():
         net.load_grown({k: v for k, v in state.items() if not k.startswith("head.")})
     with pytest.raises(RuntimeError, match="unexpected"):
         net.load_grown({**state, "extra.weight": torch.zeros(1)})
+    grown = create_model("test_trmd", refine=2)
+    partial = {k: v for k, v in grown.state_dict().items() if not k.startswith("refine.1.")}
+    with pytest.raises(RuntimeError, match="missing"):
+        create_model("test_trmd", refine=2).load_grown(partial)  # half a refinement
     wide = create_model("test_trmd", feat_width=6, refine=1)
     with pytest.raises(RuntimeError):
         wide.load_grown(state)  # shapes differ: not a grown version of these weights

@@ -454,6 +454,9 @@ class RENet(nn.Module):
         """
         missing, unexpected = self.load_state_dict(state, strict=False)
         other = [k for k in missing if not k.startswith(self.GROWN_PREFIXES)]
+        grown = {k for k in self.state_dict() if k.startswith(self.GROWN_PREFIXES)}
+        if missing and not other and set(missing) != grown:
+            other = sorted(set(missing))  # part of a refinement: not a network to grow from
         if other or unexpected:
             raise RuntimeError(f"Error(s) in loading state_dict: missing {other[:3]}, "
                                f"unexpected {list(unexpected)[:3]}")
