@@ -19,8 +19,8 @@ from trmd_cli.evaluate import (
     consistency_from_counts,
     evaluate_dataset,
     interval_counts,
-    parse_methods,
     noise_sigma,
+    parse_methods,
     sharpness,
 )
 from trmd_cli.events import make_stream
