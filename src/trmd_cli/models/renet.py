@@ -360,9 +360,9 @@ class RENet(nn.Module):
         contrasts = tuple(float(c) for c in prior_contrasts)
         if prior != "none" and (len(contrasts) < 2 or min(contrasts) <= 0):
             raise InputError(f"prior_contrasts must be ≥ 2 positive thresholds, got {contrasts}")
-        if not 0 <= int(refine) <= 8:
-            raise InputError(f"refine must be 0–8 layers, got {refine}")
         refine = int(refine)
+        if not 0 <= refine <= 8:
+            raise InputError(f"refine must be 0–8 layers, got {refine}")
         hs = max(widths[0] // 2, 1)
         rw = hs if refine_width is None else int(refine_width)
         if refine and rw < hs:
@@ -430,12 +430,12 @@ class RENet(nn.Module):
         conv + ReLU passes them through), zero on the fused features: the refinement starts as
         a no-op and learns from the gradient what the fused features add."""
         assert self.refine is not None
+        hs = self._head_skip
         with torch.no_grad():
             for layer in self.refine:
                 conv = layer[0]
                 conv.weight.zero_()
                 conv.bias.zero_()
-                hs = self._head_skip
                 nn.init.dirac_(conv.weight[:hs, :hs])
 
     #: parameter prefixes a model may lack in older weights: they start as an identity
