@@ -28,7 +28,7 @@ from trmd_cli.events import EventStream, Exposure
 from trmd_cli.models import count_macs, count_params, create_model, list_models
 from trmd_cli.models.estimator import TrmdEstimator
 from trmd_cli.pipeline import TrmdMethod
-from trmd_cli.voxel import scer_voxels
+from trmd_cli.voxel import scer_levels, scer_voxels
 from trmd_cli.weights import save_weights
 
 
@@ -75,12 +75,13 @@ def main() -> None:
           f"{'CPU ms':>8s}")
     g = torch.Generator().manual_seed(0)
     blurry = torch.rand(1, 1, h, w, generator=g)
-    voxels = torch.randn(1, 2 * n, h, w, generator=g)
+    voxels = torch.randn(1, 4 * n, h, w, generator=g)  # counts, then levels (timing nets)
     for name in names:
         model = create_model(name, n=n).eval()
+        v = voxels if model.timing else voxels[:, :2 * n]
         with torch.inference_mode():
             # networks that take the threshold get one; the others ignore it
-            med, best, cpu = _median_time(lambda m=model: m(blurry, voxels, 0.25), args.repeats,
+            med, best, cpu = _median_time(lambda m=model, v=v: m(blurry, v, 0.25), args.repeats,
                                           args.warmup)
         print(f"{name:12s} {count_params(model) / 1e6:8.2f}M {count_macs(model, h, w) / 1e9:7.2f} "
               f"{med * 1e3:10.1f} {best * 1e3:8.1f} {cpu * 1e3:8.1f}", flush=True)
@@ -97,17 +98,24 @@ def main() -> None:
         method = TrmdMethod(n, path, device="cpu", threads=args.threads)
     vox_med, *_ = _median_time(lambda: scer_voxels(stream, exposure, n), args.repeats, 1)
     vox = scer_voxels(stream, exposure, n)
-    est_med, *_ = _median_time(lambda: est(frame, vox, 0.25), args.repeats, args.warmup)
-    all_med, *_ = _median_time(lambda: est(frame, scer_voxels(stream, exposure, n), 0.25),
-                              args.repeats, 1)
+    lev_med, *_ = _median_time(lambda: scer_levels(stream, exposure, n), args.repeats, 1)
+    lev = scer_levels(stream, exposure, n) if est.needs_timing else None
+    est_med, *_ = _median_time(lambda: est(frame, vox, 0.25, lev), args.repeats, args.warmup)
+
+    def inputs_and_network():
+        levels = scer_levels(stream, exposure, n) if est.needs_timing else None
+        return est(frame, scer_voxels(stream, exposure, n), 0.25, levels)
+
+    all_med, *_ = _median_time(inputs_and_network, args.repeats, 1)
     rgb = np.repeat(frame[..., None], 3, axis=2)
-    rgb_med, *_ = _median_time(lambda: est(rgb, vox, 0.25), max(args.repeats // 2, 1), 1)
+    rgb_med, *_ = _median_time(lambda: est(rgb, vox, 0.25, lev), max(args.repeats // 2, 1), 1)
     # what `trmd deblur --method trmd` does per frame: hot pixels, the threshold (estimated
     # when the network takes one), voxels, the network
     pipe_med, *_ = _median_time(lambda: method(frame, stream, exposure), args.repeats, 1)
     print(f"end to end ({args.end_to_end}, gray model): load {load_s * 1e3:.0f} ms, "
-          f"voxels (300k events) {vox_med * 1e3:.1f} ms, estimator {est_med * 1e3:.1f} ms, "
-          f"voxels + estimator {all_med * 1e3:.1f} ms, RGB frame (3 channels) "
+          f"voxels (300k events) {vox_med * 1e3:.1f} ms, timing levels {lev_med * 1e3:.1f} ms, "
+          f"estimator {est_med * 1e3:.1f} ms, "
+          f"voxels (+ levels) + estimator {all_med * 1e3:.1f} ms, RGB frame (3 channels) "
           f"{rgb_med * 1e3:.1f} ms, whole pipeline per frame (auto c) {pipe_med * 1e3:.1f} ms")
 
 

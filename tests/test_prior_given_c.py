@@ -94,9 +94,9 @@ def test_pipeline_hands_the_network_edis_threshold(tmp_path, monkeypatch):
     seen: list = []
     real = TrmdEstimator.__call__
 
-    def spy(self, blurry, voxels, contrast=None):
+    def spy(self, blurry, voxels, contrast=None, levels=None):
         seen.append(contrast)
-        return real(self, blurry, voxels, contrast)
+        return real(self, blurry, voxels, contrast, levels)
 
     monkeypatch.setattr(TrmdEstimator, "__call__", spy)
     given = TrmdMethod(3, p, threads=1, contrast=0.37)(s.blurry, s.events, s.exposure)

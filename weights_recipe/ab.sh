@@ -10,10 +10,30 @@
 #            a weight average — the fixed contrast ladder vs the ladder around a given c
 #   round 4: fine-tuning stage 3's result ($RUNS/shipped-v3) — sensor noise ranges: two
 #            2,000-sample sets that differ only in them ($RUNS/ab4/{wide,narrow}.h5, below)
+#   round 5: from v5 ($RUNS/shipped-v5/final.safetensors), all four sets, 3,000 steps of a
+#            fresh cosine from 1e-4 each — the voxels alone vs the voxels plus their sub-bin
+#            timing (trmd_small_edi_c_fr_t, which starts computing exactly what v5 computes).
+#            Equal in steps, not minutes: the arms ran one after the other on both threads
+#            (the timing arm's data costs ~25 % more per step), with no time budget.
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 RUNS=${RUNS:-$here/../../runs}
 round=${1:-1}
+if [ "$round" = 5 ]; then
+  mkdir -p "$RUNS/ab5"
+  sets=(--data "$RUNS/train_128.h5" --data "$RUNS/train_128_hard.h5"
+        --data "$RUNS/train_128_bright.h5" --data "$RUNS/train_128_bright2.h5")
+  five=(--set "data.val_data=$RUNS/valset_kodak24.h5" --set optim.lr=1e-4
+        --set optim.warmup_steps=100 --set train.steps=3000 --set train.time_budget_minutes=0
+        --set train.val_every=1000 --init-weights "$RUNS/shipped-v5/final.safetensors")
+  trmd train --recipe "$here/recipe_stage5.toml" "${five[@]}" "${sets[@]}" \
+    --out "$RUNS/ab5/control" --overwrite > "$RUNS/ab5/control.log" 2>&1
+  trmd train --recipe "$here/recipe_stage5.toml" "${five[@]}" "${sets[@]}" \
+    --set 'model.name="trmd_small_edi_c_fr_t"' --out "$RUNS/ab5/timing" --overwrite \
+    > "$RUNS/ab5/timing.log" 2>&1
+  for name in control timing; do echo "== $name"; grep -v ',,,' "$RUNS/ab5/$name/log.csv"; done
+  exit 0
+fi
 minutes=${AB_MINUTES:-16}
 main="$RUNS/train_128.h5"
 hard="$RUNS/train_128_hard.h5"

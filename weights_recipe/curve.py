@@ -1,9 +1,9 @@
-"""The training curve of the shipped weights, all five stages on one step axis.
+"""The training curve of the shipped weights, all six stages on one step axis.
 
     python weights_recipe/curve.py -o docs/images/training_curve.png
 
 Reads the stages' logs beside this script (copies of the runs' ``log.csv``: ``STAGES``); each
-stage's steps are counted on from the last one of the stage before. Stages 3–5 validate with
+stage's steps are counted on from the last one of the stage before. Stages 3–6 validate with
 the true threshold and an average of the weights; the figures in README.md use the estimated
 threshold.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 #: the stages' logs in order (stage 4 was taken at step 2,000: its log ends there)
 STAGES = ("shipped-v2-stage1_log.csv", "shipped-v2_log.csv", "shipped-v3_log.csv",
-          "shipped-v4_log.csv", "shipped-v5_log.csv")
+          "shipped-v4_log.csv", "shipped-v5_log.csv", "s6-timing_log.csv")
 
 
 def read_log(path: Path, offset: int = 0) -> list[dict]:
@@ -42,7 +42,7 @@ def main() -> None:
     for name in STAGES:
         starts.append(rows[-1]["step"] if rows else 0)
         rows += read_log(HERE / name, offset=starts[-1])
-    title = "shipped-v5, stages from steps " + ", ".join(str(s) for s in starts[1:])
+    title = "shipped v6, stages from steps " + ", ".join(str(s) for s in starts[1:])
     write_curve(args.output, rows, title=title)
     print(f"wrote {args.output}")
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Reproduce the shipped default weights on 2 CPU cores (about 5 h 30 min including data).
+# Reproduce the shipped default weights on 2 CPU cores (about 7 h including data).
 # RUNS (default: ../runs beside the repo) holds data, checkpoints and logs — never the repo.
 # Run the script again to resume: each stage passes --resume when its checkpoint exists, and
 # a finished stage (final.safetensors written) is skipped.
@@ -61,7 +61,10 @@ if [ ! -f "$RUNS/shipped-v5/final.safetensors" ] && [ "$done4" -lt 2000 ]; then
       --stop-after 2000
   fi
 fi
-# stage 5: all four sets, a fresh cosine (75 min): the shipped weights
-stage shipped-v5 "$here/recipe.toml" --data "$main" --data "$hard" --data "$bright" \
-  --data "$bright2" --init-weights "$s4/checkpoint.safetensors"
-# then: python weights_recipe/ship.py "$RUNS/shipped-v5/final.safetensors" --valset "$val"
+all=(--data "$main" --data "$hard" --data "$bright" --data "$bright2")
+# stage 5: all four sets, a fresh cosine (75 min)
+stage shipped-v5 "$here/recipe_stage5.toml" "${all[@]}" --init-weights "$s4/checkpoint.safetensors"
+# stage 6: grow the sub-bin timing inputs (trmd_small_edi_c_fr_t) from stage 5's final weights,
+# 3,000 steps of a fresh cosine from 1e-4 (45 min): the shipped weights
+stage s6-timing "$here/recipe.toml" "${all[@]}" --init-weights "$RUNS/shipped-v5/final.safetensors"
+# then: python weights_recipe/ship.py "$RUNS/s6-timing/final.safetensors" --valset "$val"

@@ -176,7 +176,7 @@ class TrmdMethod:
         self.always_contrast = False
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
-        from .voxel import scer_voxels
+        from .voxel import scer_levels, scer_voxels
 
         b = check_blurry(blurry, events.width, events.height)
         grid = exposure.instants_us(self.n)
@@ -188,7 +188,8 @@ class TrmdMethod:
         c, estimated, reliable, hot = None, False, True, None
         if settle:
             _, c, estimated, reliable, hot = self._edi.prepare(b, events, exposure)
-        frames = self.model(b, scer_voxels(events, exposure, self.n), c)
+        levels = scer_levels(events, exposure, self.n) if self.model.needs_timing else None
+        frames = self.model(b, scer_voxels(events, exposure, self.n), c, levels)
         if not settle:
             return Estimate(frames[nearest], inst, None)
         n_hot = 0 if hot is None else int(hot.sum())

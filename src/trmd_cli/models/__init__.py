@@ -5,8 +5,8 @@ Importing this package imports torch; the CLI does so only inside the commands t
 Example::
 
     >>> from trmd_cli.models import create_model, list_models
-    >>> list_models("trmd_small*")
-    ['trmd_small', 'trmd_small_edi', 'trmd_small_edi_c', 'trmd_small_edi_c_fr']
+    >>> list_models("trmd_small_edi_c*")
+    ['trmd_small_edi_c', 'trmd_small_edi_c_fr', 'trmd_small_edi_c_fr_t']
     >>> net = create_model("trmd_small", n=3, channels=1)
 """
 

@@ -92,8 +92,14 @@ class TrmdEstimator:
         """The network takes the sensor's contrast threshold with every frame."""
         return self.model.needs_contrast
 
+    @property
+    def needs_timing(self) -> bool:
+        """True when the network also takes the voxels' sub-bin timing
+        (:func:`trmd_cli.voxel.scer_levels`, the ``levels`` argument)."""
+        return bool(getattr(self.model, "timing", False))
+
     def __call__(self, blurry: np.ndarray, voxels: np.ndarray,
-                 contrast: float | None = None) -> np.ndarray:
+                 contrast: float | None = None, levels: np.ndarray | None = None) -> np.ndarray:
         """Latent frames from a blurry frame and its SCER voxels.
 
         Args:
@@ -102,6 +108,10 @@ class TrmdEstimator:
             contrast: the threshold c (log intensity per event); required when
                 :attr:`needs_contrast` (the network refuses a missing or non-positive one),
                 ignored otherwise.
+            levels: (2N, H, W) :func:`trmd_cli.voxel.scer_levels` of the same window, for
+                networks that take them (:attr:`needs_timing`; ignored otherwise). Without raw
+                events (binned data) leave it out: the counts stand in for it, as the network
+                saw for pixels with at most one event.
         Returns:
             (2N+1, H, W) or (2N+1, H, W, 3) float32, time order k = 0..2N, not clipped (callers
             clip when writing images). The mean over frames equals ``blurry``.
@@ -126,6 +136,13 @@ class TrmdEstimator:
                              f"N = {voxels.shape[0] // 2}")
         if not (np.isfinite(blurry).all() and np.isfinite(voxels).all()):
             raise InputError("the frame or the voxels contain NaN or infinite values")
+        if self.needs_timing:
+            lv = voxels if levels is None else np.asarray(levels, dtype=np.float32)
+            if lv.shape != voxels.shape:
+                raise ShapeError(f"levels have shape {lv.shape}, the voxels {voxels.shape}")
+            if not np.isfinite(lv).all():
+                raise InputError("the voxel levels contain NaN or infinite values")
+            voxels = np.concatenate([voxels, lv], 0)
 
         rgb = blurry.ndim == 3
         # model input: (batch, C_model, H, W); a batch of 3 runs a gray model per colour channel

@@ -67,6 +67,7 @@ __all__ = [
     "trmd_small_edi",
     "trmd_small_edi_c",
     "trmd_small_edi_c_fr",
+    "trmd_small_edi_c_fr_t",
     "test_trmd",
 ]
 
@@ -322,9 +323,15 @@ class RENet(nn.Module):
             exactly (:meth:`load_grown`).
         refine_width: channels inside the refinement (default and minimum: the last
             up-step's, ``widths[0] // 2``); its last layer returns to that width for the head.
+        timing: the voxels carry 2N more channels after the SCER counts: the same instants
+            with sub-bin timing kept (:func:`~trmd_cli.voxel.scer_levels`), and the network
+            also sees EDI computed from them at the ladder's second rung. Needs a prior. Their
+            weights start at zero, so weights trained without them carry over exactly
+            (:meth:`load_grown`).
 
     Shapes:
-        blurry (B, C, H, W), voxels (B, 2N, H, W) → residuals (B, 2N, C, H, W), any H, W ≥ 1.
+        blurry (B, C, H, W), voxels (B, 2N, H, W) (with ``timing``: (B, 4N, H, W), counts
+        then levels) → residuals (B, 2N, C, H, W), any H, W ≥ 1.
 
     Example::
 
@@ -339,7 +346,7 @@ class RENet(nn.Module):
                  widths: Sequence[int] = (64, 128, 256, 512), num_res_blocks: int = 2,
                  norm: str = "batch", attn_norm: str = "none", prior: str = "none",
                  prior_contrasts: Sequence[float] | None = None, refine: int = 0,
-                 refine_width: int | None = None) -> None:
+                 refine_width: int | None = None, timing: bool = False) -> None:
         super().__init__()
         widths = tuple(int(w) for w in widths)
         if n < 1:
@@ -360,6 +367,8 @@ class RENet(nn.Module):
         contrasts = tuple(float(c) for c in prior_contrasts)
         if prior != "none" and (len(contrasts) < 2 or min(contrasts) <= 0):
             raise InputError(f"prior_contrasts must be ≥ 2 positive thresholds, got {contrasts}")
+        if timing and prior == "none":
+            raise InputError("timing needs a prior (prior='edi' or 'edi_c')")
         refine = int(refine)
         if not 0 <= refine <= 8:
             raise InputError(f"refine must be 0–8 layers, got {refine}")
@@ -375,16 +384,23 @@ class RENet(nn.Module):
             self.args.update(prior=prior, prior_contrasts=list(contrasts))
         if refine:
             self.args.update(refine=refine, refine_width=rw)
+        if timing:
+            self.args.update(timing=True)
         #: registered variant name, set by the factories (None when built directly)
         self.variant: str | None = None
         self.n, self.channels = n, channels
         self.prior = prior
         self.prior_contrasts = contrasts if prior != "none" else ()
+        self.timing = bool(timing)
         m = 2 * n
         k = len(self.prior_contrasts)
         w0, w1, w2, w3 = widths
         # with the prior, B travels with EDI's middle frames, V with EDI's residuals
         blur_in, event_in = channels * (1 + k), m * (1 + k * channels)
+        # with timing: EDI's middle frame from the levels joins B; the levels and that EDI's
+        # residuals join V — appended last everywhere, so the old weights are a slice
+        self._timing_in = (channels, m * (1 + channels)) if timing else (0, 0)
+        blur_in, event_in = blur_in + self._timing_in[0], event_in + self._timing_in[1]
 
         self.blur_fe = FeatureExtractor(blur_in, feat_width)
         self.event_fe = FeatureExtractor(event_in, feat_width)
@@ -440,29 +456,51 @@ class RENet(nn.Module):
 
     #: parameter prefixes a model may lack in older weights: they start as an identity
     GROWN_PREFIXES = ("refine.",)
+    #: weights whose input channels grow with ``timing`` (the new ones are appended, zero)
+    TIMING_INPUTS = ("blur_fe.conv1.0.weight", "event_fe.conv1.0.weight", "head.weight")
 
     def load_grown(self, state: dict[str, torch.Tensor]) -> list[str]:
-        """Load weights of the same network without the full-resolution refinement.
+        """Load weights of the same network without the full-resolution refinement and/or
+        without the timing inputs.
 
-        Every tensor of ``state`` must fit; the refinement's tensors may be missing and then
-        keep their identity initialisation (the network computes exactly what the weights
-        computed before). Returns the names that were missing.
+        Every tensor of ``state`` must fit, except that the refinement's tensors may be
+        missing (they keep their identity initialisation) and, with ``timing``, the first
+        convolutions of both feature extractors and the head may lack exactly the timing input
+        channels (those weights start at zero). Either way the network computes exactly what
+        the weights computed before. Returns the names that were grown.
 
         Raises:
             RuntimeError: unexpected, mismatched or other missing tensors (as
                 ``load_state_dict``).
         """
+        state = dict(state)
+        own = self.state_dict()
+        widened = []
+        if self.timing:
+            extra = dict(zip(self.TIMING_INPUTS, (self._timing_in[0], self._timing_in[1],
+                                                  sum(self._timing_in))))
+            for name, add in extra.items():
+                old, new = state.get(name), own[name]
+                if (old is not None and old.shape[1] + add == new.shape[1]
+                        and old.shape[0] == new.shape[0] and old.shape[2:] == new.shape[2:]):
+                    grown = torch.zeros_like(new)
+                    grown[:, :old.shape[1]] = old.to(new.dtype)
+                    state[name] = grown
+                    widened.append(name)
+            if widened and len(widened) != len(extra):
+                raise RuntimeError(f"Error(s) in loading state_dict: only {widened} lack the "
+                                   "timing inputs")
         missing, unexpected = self.load_state_dict(state, strict=False)
         other = [k for k in missing if not k.startswith(self.GROWN_PREFIXES)]
-        grown = {k for k in self.state_dict() if k.startswith(self.GROWN_PREFIXES)}
-        if missing and not other and set(missing) != grown:
+        grown_refine = {k for k in own if k.startswith(self.GROWN_PREFIXES)}
+        if missing and not other and set(missing) != grown_refine:
             other = sorted(set(missing))  # part of a refinement: not a network to grow from
         if other or unexpected:
             raise RuntimeError(f"Error(s) in loading state_dict: missing {other[:3]}, "
                                f"unexpected {list(unexpected)[:3]}")
         if missing:
             self._init_refine()
-        return list(missing)
+        return list(missing) + widened
 
     @property
     def needs_contrast(self) -> bool:
@@ -481,23 +519,35 @@ class RENet(nn.Module):
             InputError: the network needs ``contrast`` and got none or a non-positive one.
         """
         check_shape(blurry, ("B", self.channels, "H", "W"), "blurry")
-        check_shape(voxels, (blurry.shape[0], 2 * self.n, blurry.shape[2], blurry.shape[3]),
-                     "voxels")
+        m = 2 * self.n
+        check_shape(voxels, (blurry.shape[0], 2 * m if self.timing else m, blurry.shape[2],
+                             blurry.shape[3]), "voxels")
         h, w = blurry.shape[-2:]
         mult = 2 ** _DOWNS
         pad = (0, (-w) % mult, 0, (-h) % mult)
         if any(pad):
             blurry = F.pad(blurry, pad, mode="replicate")
             voxels = F.pad(voxels, pad, mode="replicate")
+        extra: list[torch.Tensor] = []  # timing inputs: after all the others
         if self.prior != "none":
             ladder: Any = self.prior_contrasts
             if self.needs_contrast:
                 ladder = self._ladder(contrast, blurry)
-            middle, residuals = edi_prior(blurry, voxels, ladder)
+            counts = voxels[:, :m]
+            middle, residuals = edi_prior(blurry, counts, ladder)
+            if self.timing:
+                levels = voxels[:, m:]
+                rung = ladder[:, 1:2] if torch.is_tensor(ladder) else ladder[1:2]
+                lmid, lres = edi_prior(blurry, levels, rung)
+                extra = [lmid.flatten(1, 2), levels, lres.flatten(1, 3)]
             blurry = torch.cat([blurry, middle.flatten(1, 2)], 1)
-            voxels = torch.cat([voxels, residuals.flatten(1, 3)], 1)
+            voxels = torch.cat([counts, residuals.flatten(1, 3)], 1)
 
-        sb, se = self.ccb(self.blur_fe(blurry), self.event_fe(voxels))
+        if extra:
+            sb, se = self.ccb(self.blur_fe(torch.cat([blurry, extra[0]], 1)),
+                              self.event_fe(torch.cat([voxels, *extra[1:]], 1)))
+        else:
+            sb, se = self.ccb(self.blur_fe(blurry), self.event_fe(voxels))
         x0 = self.sfb(sb, se)
         x1 = self.down1(x0)
         x2 = self.down2(x1)
@@ -509,7 +559,7 @@ class RENet(nn.Module):
         x = self.up4(torch.cat([x, x1], 1))
         if self.refine is not None:
             x = self.refine(torch.cat([x, x0], 1))
-        out = self.head(torch.cat([x, blurry, voxels], 1))[..., :h, :w]
+        out = self.head(torch.cat([x, blurry, voxels, *extra], 1))[..., :h, :w]
         return out.reshape(out.shape[0], 2 * self.n, self.channels, h, w)
 
     def _ladder(self, contrast: torch.Tensor | float | None, like: torch.Tensor) -> torch.Tensor:
@@ -561,6 +611,10 @@ _variant_args: dict[str, dict[str, Any]] = {
     "trmd_small_edi_c_fr": dict(feat_width=16, widths=(32, 64, 128, 256), num_res_blocks=2,
                                 norm="batch", attn_norm="spatial", prior="edi_c", refine=3,
                                 refine_width=24),
+    # trmd_small_edi_c_fr given the voxels' sub-bin timing too (voxel.scer_levels)
+    "trmd_small_edi_c_fr_t": dict(feat_width=16, widths=(32, 64, 128, 256), num_res_blocks=2,
+                                  norm="batch", attn_norm="spatial", prior="edi_c", refine=3,
+                                  refine_width=24, timing=True),
     # 13.5 k parameters: for tests only
     "test_trmd": dict(feat_width=4, widths=(4, 8, 8, 8), num_res_blocks=1,
                       norm="batch", attn_norm="spatial"),
@@ -613,6 +667,12 @@ def trmd_small_edi_c(**kwargs: Any) -> RENet:
 def trmd_small_edi_c_fr(**kwargs: Any) -> RENet:
     """``trmd_small_edi_c`` with a full-resolution refinement before the head."""
     return _create_renet("trmd_small_edi_c_fr", **kwargs)
+
+
+@register_model
+def trmd_small_edi_c_fr_t(**kwargs: Any) -> RENet:
+    """``trmd_small_edi_c_fr`` that also sees when within a bin the events came."""
+    return _create_renet("trmd_small_edi_c_fr_t", **kwargs)
 
 
 @register_model
@@ -679,7 +739,8 @@ def count_macs(model: RENet, h: int, w: int) -> int:
         model.eval()
         with torch.no_grad():
             model(torch.zeros(1, model.channels, h, w, device=p.device, dtype=p.dtype),
-                  torch.zeros(1, 2 * model.n, h, w, device=p.device, dtype=p.dtype),
+                  torch.zeros(1, (4 if model.timing else 2) * model.n, h, w, device=p.device,
+                              dtype=p.dtype),
                   0.25)  # a threshold, for networks that take one
     finally:
         for hd in handles:

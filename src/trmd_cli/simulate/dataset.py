@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import FormatError, InputError
 from ..events import EventStream, Exposure
-from ..voxel import scer_voxels
+from ..voxel import scer_levels, scer_voxels
 from .sample import Sample, make_sample
 from .sensor import SensorConfig
 from .trajectory import MotionRanges, to_gray
@@ -125,17 +125,21 @@ def _coerce(cls, value, name: str):
     raise InputError(f"{name} must be a {cls.__name__} or a table of its fields")
 
 
-def to_item(sample: Sample, n: int) -> dict[str, Any]:
-    """The dataset dict (torch tensors) of one :class:`Sample`."""
+def to_item(sample: Sample, n: int, levels: bool = False) -> dict[str, Any]:
+    """The dataset dict (torch tensors) of one :class:`Sample`; with ``levels``, also the
+    voxels' sub-bin timing (:func:`~trmd_cli.voxel.scer_levels`)."""
     import torch
 
     vox = scer_voxels(sample.events, sample.exposure, n)
-    return {
+    item = {
         "blurry": torch.from_numpy(np.ascontiguousarray(sample.blurry[None], np.float32)),
         "voxels": torch.from_numpy(np.ascontiguousarray(vox, np.float32)),
         "sharp": torch.from_numpy(np.ascontiguousarray(sample.sharp[:, None], np.float32)),
         "contrast": torch.tensor(float(sample.contrast), dtype=torch.float32),
     }
+    if levels:
+        item["levels"] = torch.from_numpy(scer_levels(sample.events, sample.exposure, n))
+    return item
 
 
 class _ImageCache:
@@ -190,6 +194,8 @@ class SimulatedDataset(_torch_dataset_base()):  # type: ignore[misc]
         read_noise: range of σ of Gaussian read noise on the blurry frame.
         zoom: range of source pixels per output pixel (capped by what fits the image).
         max_px_per_step: largest image motion between simulation sub-steps, px.
+        levels: items also carry ``levels``, the voxels' sub-bin timing
+            (:func:`~trmd_cli.voxel.scer_levels`), for networks with ``timing``.
     """
 
     def __init__(self, images: Sequence[Path | str | np.ndarray], *, n: int = 3,
@@ -198,7 +204,7 @@ class SimulatedDataset(_torch_dataset_base()):  # type: ignore[misc]
                  motion: MotionRanges | dict | None = None,
                  exposure_ms: Range = (10.0, 100.0), gain: Range = (0.25, 1.0),
                  read_noise: Range = (0.0, 0.02), zoom: Range = (1.0, 2.0),
-                 max_px_per_step: float = 1.0):
+                 max_px_per_step: float = 1.0, levels: bool = False):
         if not len(images):
             raise InputError("no images to simulate from", hint="pass image files or a folder")
         if channels != 1:
@@ -215,6 +221,7 @@ class SimulatedDataset(_torch_dataset_base()):  # type: ignore[misc]
         self.read_noise = tuple(float(x) for x in read_noise)
         self.zoom = tuple(float(x) for x in zoom)
         self.max_px_per_step = float(max_px_per_step)
+        self.levels = bool(levels)
         if not 0 < self.exposure_ms[0] <= self.exposure_ms[1]:
             raise InputError(f"exposure_ms {exposure_ms} is not a positive range")
 
@@ -239,7 +246,7 @@ class SimulatedDataset(_torch_dataset_base()):  # type: ignore[misc]
                            zoom=self.zoom)
 
     def __getitem__(self, index: int) -> dict[str, Any]:
-        return to_item(self.sample(int(index)), self.n)
+        return to_item(self.sample(int(index)), self.n, self.levels)
 
 
 class H5SampleDataset(_torch_dataset_base()):  # type: ignore[misc]
@@ -251,15 +258,17 @@ class H5SampleDataset(_torch_dataset_base()):  # type: ignore[misc]
     Args:
         path: the .h5 file.
         n: 2N+1 latent frames; default from ``frames/sharp`` (required when it is absent).
+        levels: items also carry ``levels`` (:func:`~trmd_cli.voxel.scer_levels`).
 
     Raises:
         FormatError: not a trmd HDF5 file with ``frames/blurry``.
     """
 
-    def __init__(self, path: str | Path, n: int | None = None):
+    def __init__(self, path: str | Path, n: int | None = None, levels: bool = False):
         import h5py
 
         self.path = Path(path)
+        self.levels = bool(levels)
         try:
             with h5py.File(self.path, "r") as f:
                 if f.attrs.get("format") != "trmd" or "frames" not in f \
@@ -316,13 +325,16 @@ class H5SampleDataset(_torch_dataset_base()):  # type: ignore[misc]
             raise IndexError(index)
         g = self._h5()["frames"]
         exposure = Exposure(int(self.starts[index]), int(self.ends[index]))
-        vox = scer_voxels(self.events(index), exposure, self.n)
+        events = self.events(index)
+        vox = scer_voxels(events, exposure, self.n)
         blurry = np.asarray(g["blurry"][index], np.float32)
         item = {
             "blurry": torch.from_numpy(_chw(blurry)),
             "voxels": torch.from_numpy(vox),
             "contrast": torch.tensor(float(self.contrast[index]), dtype=torch.float32),
         }
+        if self.levels:
+            item["levels"] = torch.from_numpy(scer_levels(events, exposure, self.n))
         if self.has_sharp:
             sharp = np.asarray(g["sharp"][index], np.float32)
             item["sharp"] = torch.from_numpy(np.stack([_chw(s) for s in sharp]))

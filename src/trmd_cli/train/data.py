@@ -140,15 +140,18 @@ class GoproH5Dataset(Dataset):
         crop: square crop side in pixels; 0 = whole frames.
         random_crop: crop position random per (seed, epoch, index), else centred.
         seed: base seed of the crop positions.
+        levels: give every sample ``levels`` too (for networks with ``timing``): the file
+            has no raw events, so they are the voxels themselves.
     """
 
     def __init__(self, path: str | Path, *, n: int = 3, channels: int = 1, crop: int = 0,
-                 random_crop: bool = True, seed: int = 0) -> None:
+                 random_crop: bool = True, seed: int = 0, levels: bool = False) -> None:
         import h5py
 
         self.path = Path(path)
         self.n, self.channels, self.crop = n, channels, crop
         self.random_crop, self.seed, self.epoch = random_crop, seed, 0
+        self.levels = levels
         with h5py.File(self.path, "r") as f:
             blur, sharp, vox = f["blur_images"], f["sharp_images"], f["voxel"]
             k, h, w = blur.shape[0], blur.shape[1], blur.shape[2]
@@ -210,11 +213,13 @@ class GoproH5Dataset(Dataset):
         ys, xs = self._window(index)
         blur = f["blur_images"][index, ys, xs]
         sharp = f["sharp_images"][index, :, ys, xs]
-        vox = f["voxel"][index, :, ys, xs].astype(np.float32)
-        return {"blurry": torch.from_numpy(self._color(blur)),
-                "voxels": torch.from_numpy(np.ascontiguousarray(vox)),
+        vox = torch.from_numpy(np.ascontiguousarray(f["voxel"][index, :, ys, xs], np.float32))
+        item = {"blurry": torch.from_numpy(self._color(blur)), "voxels": vox,
                 "sharp": torch.from_numpy(self._color(sharp)),
                 "contrast": torch.tensor(float("nan"))}
+        if self.levels:
+            item["levels"] = vox.clone()
+        return item
 
 
 # --------------------------------------------------------------------------------------------
@@ -251,7 +256,7 @@ class CropDataset(Dataset):
                 y, x = int(g.integers(0, h - c + 1)), int(g.integers(0, w - c + 1))
             else:
                 y, x = (h - c) // 2, (w - c) // 2
-            for key in ("blurry", "voxels", "sharp"):
+            for key in ("blurry", "voxels", "levels", "sharp"):
                 if key in item:
                     item[key] = item[key][..., y:y + c, x:x + c].contiguous()
         if self.augment:
@@ -268,11 +273,15 @@ def augment_item(item: dict[str, torch.Tensor], g: np.random.Generator) -> dict[
 
     All keep the physics exact. Reversing time maps latent frame k to 2N−k and flips every
     event's polarity; with SCER's sign convention that is exactly V'(k) = V(2N−k), i.e. the
-    voxel channels reversed (no negation) — so pre-generated sets count 16× over.
+    voxel channels reversed (no negation) — so pre-generated sets count 16× over. Samples with
+    timing levels (``levels``, :func:`~trmd_cli.voxel.scer_levels`) are flipped and transposed
+    but never reversed: the levels follow the sensor, which is not symmetric in time.
     """
     item = dict(item)
-    keys = [k for k in ("blurry", "voxels", "sharp") if k in item]
+    keys = [k for k in ("blurry", "voxels", "levels", "sharp") if k in item]
     hflip, vflip, transpose, reverse = (bool(b) for b in g.integers(0, 2, 4))
+    # the timing levels of a reversed stream are not the reversed levels (voxel.scer_levels)
+    reverse = reverse and "levels" not in item
     h, w = item["blurry"].shape[-2:]
     for k in keys:
         t = item[k]
@@ -282,7 +291,7 @@ def augment_item(item: dict[str, torch.Tensor], g: np.random.Generator) -> dict[
             t = t.flip(-2)
         if transpose and h == w:
             t = t.transpose(-1, -2)
-        if reverse and k in ("voxels", "sharp"):
+        if reverse and k in ("voxels", "levels", "sharp"):
             t = t.flip(0)
         item[k] = t.contiguous()
     return item
@@ -355,6 +364,17 @@ class DataPlan:
     notes: list[str] = field(default_factory=list)
 
 
+def wants_levels(recipe) -> bool:
+    """Whether the recipe's network takes sub-bin timing (``timing``): its samples then carry
+    ``levels`` (:func:`~trmd_cli.voxel.scer_levels`)."""
+    from ..models.registry import is_model
+    from ..models.renet import _variant_args
+
+    m = recipe.model
+    base = _variant_args.get(m.name, {}) if is_model(m.name) else {}
+    return bool(m.args.get("timing", base.get("timing", False)))
+
+
 def _simulated(images: list[Path], recipe, *, length: int, seed: int, crop: int,
                train: bool) -> Dataset:
     from ..simulate.dataset import SimulatedDataset
@@ -371,6 +391,8 @@ def _simulated(images: list[Path], recipe, *, length: int, seed: int, crop: int,
         takes = ", ".join(p for p in params if p != "images")
         raise InputError(f"data.simulator has unknown key(s) {', '.join(unknown)}",
                          hint=f"SimulatedDataset takes: {takes}")
+    if wants_levels(recipe):
+        kwargs["levels"] = True
     try:
         return SimulatedDataset(images, **kwargs)
     except TypeError as e:
@@ -380,10 +402,12 @@ def _simulated(images: list[Path], recipe, *, length: int, seed: int, crop: int,
 def _h5(kind: str, path: Path, recipe, *, crop: int, train: bool, seed: int) -> Dataset:
     if kind == "gopro_h5":
         return GoproH5Dataset(path, n=recipe.model.n, channels=recipe.model.channels,
-                              crop=crop, random_crop=train, seed=seed)
+                              crop=crop, random_crop=train, seed=seed,
+                              levels=wants_levels(recipe))
     from ..simulate.dataset import H5SampleDataset
 
-    return CropDataset(H5SampleDataset(path, n=recipe.model.n), crop, random_crop=train,
+    return CropDataset(H5SampleDataset(path, n=recipe.model.n, levels=wants_levels(recipe)),
+                       crop, random_crop=train,
                        seed=seed, augment=train and recipe.data.augment)
 
 

@@ -127,16 +127,22 @@ def build_model(recipe: Recipe) -> torch.nn.Module:
 
 
 def forward(model: torch.nn.Module, batch: dict[str, torch.Tensor], *, needs_contrast: bool,
-            jitter: float = 0.0, fallback_contrast: float = 0.2) -> torch.Tensor:
+            jitter: float = 0.0, fallback_contrast: float = 0.2,
+            timing: bool = False) -> torch.Tensor:
     """The network's residuals for a batch; networks that take the threshold c get the batch's
-    true c (``fallback_contrast`` where unknown) times ``exp(N(0, jitter))``."""
+    true c (``fallback_contrast`` where unknown) times ``exp(N(0, jitter))``; networks that take
+    sub-bin timing (``timing``) get ``batch["levels"]`` after the voxels (the counts again
+    where the data has none, as in use on binned data)."""
+    voxels = batch["voxels"]
+    if timing:
+        voxels = torch.cat([voxels, batch.get("levels", voxels)], 1)
     if not needs_contrast:
-        return model(batch["blurry"], batch["voxels"])
+        return model(batch["blurry"], voxels)
     c = batch["contrast"].to(batch["blurry"].device, torch.float32).reshape(-1)
     c = torch.where(torch.isfinite(c) & (c > 0), c, torch.full_like(c, fallback_contrast))
     if jitter > 0:
         c = c * torch.exp(jitter * torch.randn(c.shape)).to(c.device)
-    return model(batch["blurry"], batch["voxels"], c)
+    return model(batch["blurry"], voxels, c)
 
 
 def _has_true_contrast(dataset) -> bool:
@@ -184,11 +190,12 @@ def evaluate(model: torch.nn.Module, dataset, *, dist: ddp.Dist | None = None,
         for start in range(0, len(idx), batch_size):
             items = [dataset[i] for i in idx[start:start + batch_size]]
             batch = {k: torch.stack([it[k] for it in items]).to(device) for k in
-                     ("blurry", "voxels", "sharp", "contrast") if k in items[0]}
+                     ("blurry", "voxels", "levels", "sharp", "contrast") if k in items[0]}
             with torch.autocast(device_type=device.type, dtype=torch.float16,
                                 enabled=amp and device.type == "cuda"):
                 residuals = forward(model, batch, fallback_contrast=fallback_contrast,
-                                    needs_contrast=getattr(model, "needs_contrast", False))
+                                    needs_contrast=getattr(model, "needs_contrast", False),
+                                    timing=bool(getattr(model, "timing", False)))
             latent = reconstruct(batch["blurry"], residuals.float()).clamp(0.0, 1.0)
             sharp = batch["sharp"]
             b, frames = sharp.shape[:2]
@@ -381,10 +388,14 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
                          f"{doc.get('world')}: the batches differ from an uninterrupted run")
     elif init_weights is not None:
         grown = _load_init(model, init_weights, r)
-        if grown:
-            layers = sorted({k.split(".")[0] for k in grown})
-            notes.append(f"--init-weights had no {', '.join(layers)} layers: they start as an "
+        widened = [k for k in grown if k in getattr(model, "TIMING_INPUTS", ())]
+        added = sorted({k.split(".")[0] for k in grown if k not in widened})
+        if added:
+            notes.append(f"--init-weights had no {', '.join(added)} layers: they start as an "
                          "identity, so the run starts from exactly what those weights computed")
+        if widened:
+            notes.append("--init-weights had no timing inputs: their weights start at zero, "
+                         "so the run starts from exactly what those weights computed")
     if ema is None and r.optim.ema > 0:
         ema = WeightAverage(model, r.optim.ema)
 
@@ -501,7 +512,8 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
                                     enabled=use_amp):
                     residuals = forward(model, b, needs_contrast=needs_contrast,
                                         jitter=r.data.contrast_jitter,
-                                        fallback_contrast=r.loss.contrast)
+                                        fallback_contrast=r.loss.contrast,
+                                        timing=bool(getattr(bare, "timing", False)))
                 residuals = residuals.float()
                 outputs = {"residuals": residuals, "latent": reconstruct(b["blurry"], residuals)}
                 loss, _ = total_loss(outputs, b, r)
