@@ -116,3 +116,31 @@ def test_existing_output_refused_then_overwritten(npz, tmp_path):
     r = runner.invoke(app, ["voxelize", str(path), "-o", str(out), "--overwrite"])
     assert r.exit_code == 0
     assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+def test_info_describes_weights(tmp_path):
+    import torch
+
+    from trmd_cli.models import count_params, create_model
+    from trmd_cli.weights import describe_weights, save_weights
+
+    torch.manual_seed(0)
+    plain = save_weights(tmp_path / "plain.safetensors", create_model("test_trmd"), half=False)
+    timed = save_weights(tmp_path / "timed.safetensors",
+                         create_model("test_trmd", prior="edi_c", timing=True), half=True,
+                         meta={"validation": {"trmd": {"psnr_mid": 30.123, "psnr_seq": 28.5},
+                                              "set": "a test set"}})
+    d = describe_weights(plain)
+    assert d["architecture"] == "test_trmd" and d["inputs"] == [] and d["n"] == 3
+    assert d["parameters"] == count_params(create_model("test_trmd"))
+    d = describe_weights(timed)
+    assert d["dtype"] == "float16" and len(d["inputs"]) == 2
+    assert d["parameters"] == count_params(create_model("test_trmd", prior="edi_c", timing=True))
+    r = runner.invoke(app, ["info", str(timed), "--json"])
+    assert r.exit_code == 0 and json.loads(r.stdout)["validation"]["trmd"]["psnr_mid"] == 30.123
+    r = runner.invoke(app, ["info", str(timed)])
+    assert r.exit_code == 0 and "timing" in r.stdout and "30.12 / 28.50" in r.stdout
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"not weights")
+    r = runner.invoke(app, ["info", str(bad)])
+    assert r.exit_code == 2 and "Traceback" not in r.output

@@ -24,6 +24,7 @@ import hashlib
 import json
 import struct
 from importlib import resources
+from math import prod
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -40,6 +41,7 @@ __all__ = [
     "save_weights",
     "load_weights",
     "read_metadata",
+    "describe_weights",
     "weights_hash",
     "default_weights_path",
     "resolve_device",
@@ -266,6 +268,54 @@ def read_metadata(path: str | Path | None = None) -> dict[str, Any]:
         raise WeightsError(f"not a readable safetensors file ({reason})", path=p,
                            hint="the file is truncated or corrupt: copy it again") from None
     return _decode(raw, p)
+
+
+def describe_weights(path: str | Path | None = None) -> dict[str, Any]:
+    """What a weights file is, for people (``trmd info W.safetensors``), without torch.
+
+    Returns:
+        dict: ``file``, ``sha256`` (first 12 hex digits), ``size_mib``, ``architecture``,
+        ``parameters`` (count, from the tensor shapes), ``dtype``, ``n``, ``channels``,
+        ``inputs`` (what the network needs besides the blurry frame and the voxels),
+        ``recipe`` (its name), ``training_data``, ``trmd_version`` and — when the file
+        records them — ``validation``: {method: {figure: value}} on its validation set.
+    Raises:
+        WeightsError: as :func:`read_metadata`.
+    """
+    from safetensors import safe_open
+
+    p = _existing(path)
+    meta = read_metadata(p)
+    with safe_open(str(p), framework="numpy") as fh:
+        params = 0
+        for k in fh.keys():
+            if k.endswith(("running_mean", "running_var", "num_batches_tracked")):
+                continue  # BatchNorm statistics are buffers, not parameters
+            shape = fh.get_slice(k).get_shape()
+            params += int(prod(shape))
+    args = meta.get("args") or {}
+    inputs = []
+    if args.get("prior") == "edi_c":
+        inputs.append("the contrast threshold c (estimated per frame unless given)")
+    if args.get("timing"):
+        inputs.append("the events' sub-bin timing (voxel.scer_levels; raw events needed)")
+    recipe = meta.get("recipe")
+    val = meta.get("validation") if isinstance(meta.get("validation"), dict) else None
+    return {
+        "file": str(p),
+        "sha256": weights_hash(p),
+        "size_mib": round(p.stat().st_size / 2**20, 2),
+        "architecture": meta.get("architecture"),
+        "parameters": params,
+        "dtype": meta.get("dtype"),
+        "n": meta.get("n"),
+        "channels": meta.get("channels"),
+        "inputs": inputs,
+        "recipe": recipe.get("name") if isinstance(recipe, dict) else recipe,
+        "training_data": meta.get("training_data"),
+        "trmd_version": meta.get("trmd_version"),
+        "validation": val,
+    }
 
 
 def _decode(raw: dict[str, str], path: Path) -> dict[str, Any]:

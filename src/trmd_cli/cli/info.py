@@ -1,4 +1,4 @@
-"""`trmd info FILE`: what is in an event file."""
+"""`trmd info FILE`: what is in an event file, or in a TRMD weights file."""
 
 from __future__ import annotations
 
@@ -14,14 +14,22 @@ from .options import Columns, OneBased, Sensor, TimeUnit, read_options
 
 def info(
     file: Annotated[Path, typer.Argument(
-        help="Event file (txt, npz, npy, h5, aedat4, raw, dat, mat).")],
+        help="Event file (txt, npz, npy, h5, aedat4, raw, dat, mat), or TRMD weights "
+             "(.safetensors).")],
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
     time_unit: TimeUnit = None,
     columns: Columns = None,
     one_based: OneBased = False,
     sensor: Sensor = None,
 ) -> None:
-    """Describe an event file: format, events, sensor, duration, rate, polarity, frames."""
+    """Describe an event file: format, events, sensor, duration, rate, polarity, frames.
+
+    Given TRMD weights (.safetensors): architecture, parameters, what the network needs, the
+    recipe and data it was trained on, and its validation figures.
+    """
+    if file.suffix.lower() == ".safetensors":
+        _weights_info(file, as_json)
+        return
     from ..read import open_events
     from ..summary import summarize
 
@@ -50,6 +58,38 @@ def info(
                           f"({fr['duration_ms']:.3f} ms), {fr['events']} events")
         if len(frames) > 5:
             t.add_row("", f"… {len(frames) - 5} more (--json lists all)")
+    Console().print(t)
+
+
+def _weights_info(file: Path, as_json: bool) -> None:
+    from ..weights import describe_weights
+
+    d = describe_weights(file)
+    if as_json:
+        typer.echo(json.dumps(d, indent=2))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=str(file), show_header=False, title_justify="left")
+    t.add_row("weights", f"{d['architecture']}, {d['parameters']:,} parameters, {d['dtype']}, "
+                         f"{d['size_mib']} MiB, sha256 {d['sha256']}")
+    t.add_row("frames", f"N = {d['n']} ({2 * int(d['n']) + 1} latent frames), "
+                        f"{d['channels']} channel(s)")
+    for i, need in enumerate(d["inputs"]):
+        t.add_row("needs" if i == 0 else "", need)
+    t.add_row("recipe", str(d["recipe"]))
+    if d["training_data"]:
+        t.add_row("trained on", ", ".join(map(str, d["training_data"])))
+    val = d["validation"] or {}
+    rows = [(m, v) for m, v in val.items() if isinstance(v, dict) and "psnr_mid" in v]
+    for i, (m, v) in enumerate(rows):
+        t.add_row("validation" if i == 0 else "",
+                  f"{m}: PSNR {v['psnr_mid']:.2f} / {v['psnr_seq']:.2f} dB (middle / sequence)"
+                  + (f", SSIM {v['ssim_mid']:.3f} / {v['ssim_seq']:.3f}" if "ssim_mid" in v
+                     else ""))
+    if rows and val.get("set"):
+        t.add_row("", f"on {val['set']}")
     Console().print(t)
 
 
