@@ -19,6 +19,7 @@ from trmd_cli.train.recipe import apply_overrides
 from trmd_cli.voxel import scer_levels, scer_voxels
 from trmd_cli.weights import load_weights, save_weights
 
+from .test_train_data import make_image_folder
 from .test_train_loop import recipe
 
 
@@ -194,14 +195,7 @@ def test_estimator_and_weights_round_trip(tmp_path):
 
 
 def _images(tmp_path):
-    import cv2
-
-    rng = np.random.default_rng(0)
-    (tmp_path / "imgs").mkdir()
-    for i in range(3):
-        img = (rng.random((60, 70)) * 255).astype(np.uint8)
-        cv2.imwrite(str(tmp_path / "imgs" / f"{i}.png"), cv2.GaussianBlur(img, (5, 5), 2))
-    return tmp_path / "imgs"
+    return make_image_folder(tmp_path / "imgs", 3)
 
 
 def test_training_data_carries_levels_only_for_timing_networks(tmp_path):

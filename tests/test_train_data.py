@@ -228,14 +228,20 @@ def test_build_data_trmd_h5_and_supervision_check(tmp_path):
                    recipe("model.n=3", "data.val_fraction=0.0"))
 
 
-def test_build_data_image_folder_uses_the_simulator(tmp_path):
+def make_image_folder(folder: Path, count: int) -> Path:
+    """``count`` smooth random 70×60 PNGs in ``folder`` (created): stills to simulate from."""
     import cv2
 
     rng = np.random.default_rng(0)
-    (tmp_path / "imgs").mkdir()
-    for i in range(4):
+    folder.mkdir()
+    for i in range(count):
         img = (rng.random((60, 70)) * 255).astype(np.uint8)
-        cv2.imwrite(str(tmp_path / "imgs" / f"{i}.png"), cv2.GaussianBlur(img, (5, 5), 2))
+        cv2.imwrite(str(folder / f"{i}.png"), cv2.GaussianBlur(img, (5, 5), 2))
+    return folder
+
+
+def test_build_data_image_folder_uses_the_simulator(tmp_path):
+    make_image_folder(tmp_path / "imgs", 4)
     r = recipe("data.length=10", "data.val_fraction=0.25", "data.val_samples=3",
                "data.crop=24")
     plan = build_data([tmp_path / "imgs"], r)

@@ -941,8 +941,7 @@ def evaluate_dataset(
         if ("trmd" in methods and "trmd" not in skipped and trmd is not None
                 and not src.has_raw_events and trmd.model.needs_timing):
             notes.append("the data is binned (no event times): the network's timing inputs get "
-                         "the counts, as for pixels with at most one event — expect less than "
-                         "on raw events")
+                         "the counts instead — expect less than on raw events")
         lpips_fn = None
         if use_gt and lpips is not False:
             ok, note = lpips_status()

@@ -110,8 +110,8 @@ class TrmdEstimator:
                 ignored otherwise.
             levels: (2N, H, W) :func:`trmd_cli.voxel.scer_levels` of the same window, for
                 networks that take them (:attr:`needs_timing`; ignored otherwise). Without raw
-                events (binned data) leave it out: the counts stand in for it, as the network
-                saw for pixels with at most one event.
+                events (binned data) leave it out: the counts stand in for it — within a step
+                of the levels, but not what the network was trained on, so expect less.
         Returns:
             (2N+1, H, W) or (2N+1, H, W, 3) float32, time order k = 0..2N, not clipped (callers
             clip when writing images). The mean over frames equals ``blurry``.
