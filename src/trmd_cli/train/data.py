@@ -367,11 +367,13 @@ class DataPlan:
 def wants_levels(recipe) -> bool:
     """Whether the recipe's network takes sub-bin timing (``timing``): its samples then carry
     ``levels`` (:func:`~trmd_cli.voxel.scer_levels`)."""
-    from ..models.registry import is_model
-    from ..models.renet import _variant_args
+    from ..models.renet import variant_args
 
     m = recipe.model
-    base = _variant_args.get(m.name, {}) if is_model(m.name) else {}
+    try:
+        base = variant_args(m.name)
+    except KeyError:  # not a registered RE-Net variant: only its own args can ask for timing
+        base = {}
     return bool(m.args.get("timing", base.get("timing", False)))
 
 
