@@ -14,7 +14,8 @@
 #            fresh cosine from 1e-4 each — the voxels alone vs the voxels plus their sub-bin
 #            timing (trmd_small_edi_c_fr_t, which starts computing exactly what v5 computes).
 #            Equal in steps, not minutes: the arms ran one after the other on both threads
-#            (the timing arm's data costs ~25 % more per step), with no time budget.
+#            (the timing arm's data costs ~25 % more per step), with no time budget. A repeat
+#            of the timing arm with --set seed=7 --stop-after 1000 checked the gain (ab5/).
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 RUNS=${RUNS:-$here/../../runs}
