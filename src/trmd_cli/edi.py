@@ -73,7 +73,7 @@ def hot_pixel_mask(events: EventStream, exposure: Exposure | None = None,
     they go up and back down; a hot pixel drifts one way). EDI multiplies by
     ``exp(c · net count)``, so one hot pixel otherwise becomes a white or black dot.
     """
-    ev = events if exposure is None else _window(events, exposure)
+    ev = events if exposure is None else events.within(exposure)
     h, w = events.height, events.width
     flat = ev.y.astype(np.int64) * w + ev.x
     count = np.bincount(flat, minlength=h * w)
@@ -89,13 +89,6 @@ def hot_pixel_mask(events: EventStream, exposure: Exposure | None = None,
     hot = ((count > max(min_count, med + factor * mad))
            & (np.abs(net) > max(min_count / 2, nmed + factor * nmad)))
     return hot.reshape(h, w)
-
-
-def _window(events: EventStream, exposure: Exposure) -> EventStream:
-    """Events with ``start <= t <= end`` (the end instant belongs to the exposure)."""
-    i0 = int(np.searchsorted(events.t, exposure.start_us, side="left"))
-    i1 = int(np.searchsorted(events.t, exposure.end_us, side="right"))
-    return events.take(slice(i0, i1))
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,7 +126,7 @@ class EdiEvents:
 
         ``hot_mask`` (H, W) bool drops those pixels' events (their latent stays ``B``).
         """
-        ev = _window(events, exposure)
+        ev = events.within(exposure)
         h, w = events.height, events.width
         n_pix = h * w
         flat = ev.y.astype(np.int64) * w + ev.x.astype(np.int64)

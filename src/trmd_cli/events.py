@@ -101,6 +101,13 @@ class EventStream:
         i0, i1 = np.searchsorted(self.t, [start_us, end_us], side="left")
         return self.take(slice(int(i0), int(i1)))
 
+    def within(self, exposure: Exposure) -> "EventStream":
+        """Events of an exposure window, ``start_us <= t <= end_us`` (its end instant belongs
+        to it), as views."""
+        i0 = int(np.searchsorted(self.t, exposure.start_us, side="left"))
+        i1 = int(np.searchsorted(self.t, exposure.end_us, side="right"))
+        return self.take(slice(i0, i1))
+
     def take(self, index) -> "EventStream":
         return EventStream(self.x[index], self.y[index], self.t[index], self.p[index],
                            self.width, self.height)

@@ -30,16 +30,14 @@ def event_bins(events: EventStream, exposure: Exposure, num_bins: int) -> np.nda
     if num_bins < 1:
         raise InputError(f"num_bins must be ≥ 1, got {num_bins}")
     h, w = events.height, events.width
-    i0 = int(np.searchsorted(events.t, exposure.start_us, side="left"))
-    i1 = int(np.searchsorted(events.t, exposure.end_us, side="right"))
-    t = events.t[i0:i1]
-    if len(t) == 0:
+    ev = events.within(exposure)
+    if len(ev) == 0:
         return np.zeros((num_bins, h, w), np.float32)
     # integer arithmetic: exact bin edges whatever the magnitude of t
-    b = ((t - exposure.start_us) * num_bins) // exposure.duration_us
+    b = ((ev.t - exposure.start_us) * num_bins) // exposure.duration_us
     np.clip(b, 0, num_bins - 1, out=b)
-    flat = b * (h * w) + events.y[i0:i1].astype(np.int64) * w + events.x[i0:i1]
-    counts = np.bincount(flat, weights=events.p[i0:i1], minlength=num_bins * h * w)
+    flat = b * (h * w) + ev.y.astype(np.int64) * w + ev.x
+    counts = np.bincount(flat, weights=ev.p, minlength=num_bins * h * w)
     return counts.astype(np.float32).reshape(num_bins, h, w)
 
 
@@ -111,20 +109,19 @@ def scer_levels(events: EventStream, exposure: Exposure, n: int = 3) -> np.ndarr
     h, w = events.height, events.width
     m = 2 * n
     out = np.zeros((m, h * w), np.float32)
-    i0 = int(np.searchsorted(events.t, exposure.start_us, side="left"))
-    i1 = int(np.searchsorted(events.t, exposure.end_us, side="right"))
-    if i1 <= i0:
+    ev = events.within(exposure)
+    if len(ev) == 0:
         return out.reshape(m, h, w)
     # times scaled by 2N, instants by the duration: instant k is exactly k·T in these units
     dur = int(exposure.duration_us)
-    rel = (events.t[i0:i1] - exposure.start_us) * m
-    pix = events.y[i0:i1].astype(np.int64) * w + events.x[i0:i1]
+    rel = (ev.t - exposure.start_us) * m
+    pix = ev.y.astype(np.int64) * w + ev.x
     e = len(rel)
     # per pixel, in time order: the event index breaks ties (a unique key; faster than a
     # stable sort)
     order = np.argsort(pix * e + np.arange(e))
     rel, pix = rel[order], pix[order]
-    p = events.p[i0:i1][order].astype(np.float64)
+    p = ev.p[order].astype(np.float64)
     level = np.cumsum(p)
     count_all = np.bincount(pix, minlength=h * w)
     uniq = np.flatnonzero(count_all)

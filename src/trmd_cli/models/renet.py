@@ -543,11 +543,10 @@ class RENet(nn.Module):
             blurry = torch.cat([blurry, middle.flatten(1, 2)], 1)
             voxels = torch.cat([counts, residuals.flatten(1, 3)], 1)
 
+        b_in, e_in = blurry, voxels
         if extra:
-            sb, se = self.ccb(self.blur_fe(torch.cat([blurry, extra[0]], 1)),
-                              self.event_fe(torch.cat([voxels, *extra[1:]], 1)))
-        else:
-            sb, se = self.ccb(self.blur_fe(blurry), self.event_fe(voxels))
+            b_in, e_in = torch.cat([blurry, extra[0]], 1), torch.cat([voxels, *extra[1:]], 1)
+        sb, se = self.ccb(self.blur_fe(b_in), self.event_fe(e_in))
         x0 = self.sfb(sb, se)
         x1 = self.down1(x0)
         x2 = self.down2(x1)
