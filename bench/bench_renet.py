@@ -4,18 +4,21 @@ Usage::
 
     python bench/bench_renet.py                      # all registered variants, 2 threads
     python bench/bench_renet.py --variants trmd_small --repeats 10 --threads 2
+    python bench/bench_renet.py --precisions fp32 bf16   # bf16: mixed precision (autocast)
 
 Per variant: parameters, MACs (count_macs, at the padded 352×272 grid), median and minimum
 wall time of one forward pass of the network alone (torch.inference_mode, after warm-up), and
 the minimum process CPU time (summed over threads; with --threads 1 it hardly depends on other
-load). End to end (one variant): SCER voxels from ~300k synthetic events, the TrmdEstimator call
-(numpy in → 2N+1 frames out, weights loaded from a safetensors file), and the two together.
-Wall times depend on what else runs on the machine.
+load) — once per precision (default: fp32, plus bf16 on CPUs with native bfloat16). End to
+end (one variant, the last precision): SCER voxels from ~300k synthetic events, the
+TrmdEstimator call (numpy in → 2N+1 frames out, weights loaded from a safetensors file), and
+the two together. Wall times depend on what else runs on the machine.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import tempfile
 import time
@@ -28,6 +31,7 @@ from trmd_cli.events import EventStream, Exposure
 from trmd_cli.models import count_macs, count_params, create_model, list_models
 from trmd_cli.models.estimator import TrmdEstimator
 from trmd_cli.pipeline import TrmdMethod
+from trmd_cli.precision import autocast, cpu_has_native_bf16, resolve_precision
 from trmd_cli.voxel import scer_levels, scer_voxels
 from trmd_cli.weights import save_weights
 
@@ -63,39 +67,56 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--warmup", type=int, default=2)
-    ap.add_argument("--end-to-end", default="trmd_small_edi_c_fr",
+    ap.add_argument("--end-to-end", default="trmd_small_edi_c_fr_t",
                     help="variant for the end-to-end run (default: the shipped one)")
+    ap.add_argument("--precisions", nargs="*", default=None,
+                    help="fp32 / bf16 (default: fp32, and bf16 where the CPU has it natively)")
+    ap.add_argument("--args", default="{}",
+                    help="JSON constructor overrides for the variants, e.g. "
+                    "'{\"widths\": [48, 96, 192, 384]}'")
     args = ap.parse_args()
 
     torch.set_num_threads(args.threads)
     h, w, n = args.height, args.width, args.n
     names = args.variants or list_models()
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {w}x{h}, N={n}")
-    print(f"{'variant':12s} {'params':>9s} {'GMACs':>7s} {'median ms':>10s} {'min ms':>8s} "
-          f"{'CPU ms':>8s}")
+    precisions = args.precisions or (["fp32", "bf16"] if cpu_has_native_bf16() else ["fp32"])
+    over = json.loads(args.args)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {w}x{h}, N={n}, "
+          f"native bfloat16: {cpu_has_native_bf16()}")
+    print(f"{'variant':12s} {'prec':>5s} {'params':>9s} {'GMACs':>7s} {'median ms':>10s} "
+          f"{'min ms':>8s} {'CPU ms':>8s}")
     g = torch.Generator().manual_seed(0)
     blurry = torch.rand(1, 1, h, w, generator=g)
     voxels = torch.randn(1, 4 * n, h, w, generator=g)  # counts, then levels (timing nets)
+    cpu_dev = torch.device("cpu")
     for name in names:
-        model = create_model(name, n=n).eval()
+        model = create_model(name, n=n, **over).eval()
         v = voxels if model.timing else voxels[:, :2 * n]
-        with torch.inference_mode():
-            # networks that take the threshold get one; the others ignore it
-            med, best, cpu = _median_time(lambda m=model, v=v: m(blurry, v, 0.25), args.repeats,
-                                          args.warmup)
-        print(f"{name:12s} {count_params(model) / 1e6:8.2f}M {count_macs(model, h, w) / 1e9:7.2f} "
-              f"{med * 1e3:10.1f} {best * 1e3:8.1f} {cpu * 1e3:8.1f}", flush=True)
+        for prec in precisions:
+            dtype = resolve_precision(prec, cpu_dev)
+
+            def run(m=model, v=v, dtype=dtype):
+                with autocast(cpu_dev, dtype):
+                    return m(blurry, v, 0.25)  # the threshold is ignored where not taken
+
+            with torch.inference_mode():
+                med, best, cpu = _median_time(run, args.repeats, args.warmup)
+            print(f"{name:12s} {prec:>5s} {count_params(model) / 1e6:8.2f}M "
+                  f"{count_macs(model, h, w) / 1e9:7.2f} {med * 1e3:10.1f} {best * 1e3:8.1f} "
+                  f"{cpu * 1e3:8.1f}", flush=True)
 
     exposure = Exposure(0, 20_000)
     stream = _events(w, h, 300_000, exposure)
     frame = np.random.default_rng(1).random((h, w)).astype(np.float32)
     with tempfile.TemporaryDirectory() as tmp:
         path = save_weights(Path(tmp) / "bench.safetensors",
-                            create_model(args.end_to_end, n=n), meta={})
+                            create_model(args.end_to_end, n=n, **over), meta={})
         t0 = time.perf_counter()
-        est = TrmdEstimator.load(path, device="cpu", threads=args.threads)
+        est = TrmdEstimator.load(path, device="cpu", threads=args.threads,
+                                 precision=precisions[-1])
         load_s = time.perf_counter() - t0
-        method = TrmdMethod(n, path, device="cpu", threads=args.threads)
+        method = TrmdMethod(n, path, device="cpu", threads=args.threads,
+                            precision=precisions[-1])
     vox_med, *_ = _median_time(lambda: scer_voxels(stream, exposure, n), args.repeats, 1)
     vox = scer_voxels(stream, exposure, n)
     lev_med, *_ = _median_time(lambda: scer_levels(stream, exposure, n), args.repeats, 1)
@@ -112,7 +133,8 @@ def main() -> None:
     # what `trmd deblur --method trmd` does per frame: hot pixels, the threshold (estimated
     # when the network takes one), voxels, the network
     pipe_med, *_ = _median_time(lambda: method(frame, stream, exposure), args.repeats, 1)
-    print(f"end to end ({args.end_to_end}, gray model): load {load_s * 1e3:.0f} ms, "
+    print(f"end to end ({args.end_to_end}, gray model, {est.precision}): "
+          f"load {load_s * 1e3:.0f} ms, "
           f"voxels (300k events) {vox_med * 1e3:.1f} ms, timing levels {lev_med * 1e3:.1f} ms, "
           f"estimator {est_med * 1e3:.1f} ms, "
           f"voxels (+ levels) + estimator {all_med * 1e3:.1f} ms, RGB frame (3 channels) "

@@ -1,8 +1,9 @@
 """Training speed on this machine: one optimiser step (forward, paper loss, backward, Adam) of a
-model at a crop and batch size, for torch thread counts and memory layouts; plus the cost of
+model at a crop and batch size, for torch thread counts, memory layouts and precisions (float32;
+bfloat16 autocast where the CPU has it natively, as ``train.amp`` does); plus the cost of
 simulating a training sample on the fly (what DataLoader workers would compete with).
 
-    python bench/bench_train.py [--model trmd_small] [--crop 128] [--batch 8] [--steps 5]
+    python bench/bench_train.py [--model trmd_small_edi_c_fr_t] [--crop 96] [--batch 14]
 
 Prints seconds per step and samples per second. Keep it short: the cores are shared.
 """
@@ -20,11 +21,12 @@ from _common import machine  # noqa: E402
 
 
 def step_time(model_name: str, crop: int, batch: int, steps: int, threads: int,
-              channels_last: bool) -> float:
+              channels_last: bool, precision: str = "fp32") -> float:
     import torch
 
+    from trmd_cli.precision import autocast, resolve_precision
     from trmd_cli.reconstruct import reconstruct
-    from trmd_cli.train.loop import build_model
+    from trmd_cli.train.loop import build_model, forward
     from trmd_cli.train.losses import total_loss
     from trmd_cli.train.recipe import Recipe, apply_overrides
 
@@ -38,13 +40,19 @@ def step_time(model_name: str, crop: int, batch: int, steps: int, threads: int,
     g = torch.Generator().manual_seed(0)
     sharp = torch.rand(batch, 7, 1, crop, crop, generator=g)
     b = {"blurry": sharp.mean(1), "voxels": torch.randn(batch, 6, crop, crop, generator=g),
-         "sharp": sharp}
+         "levels": torch.randn(batch, 6, crop, crop, generator=g), "sharp": sharp,
+         "contrast": torch.full((batch,), 0.25)}
     if channels_last:
         b = {k: (v.contiguous(memory_format=torch.channels_last) if v.ndim == 4 else v)
              for k, v in b.items()}
 
+    dtype = resolve_precision(precision, torch.device("cpu"))
+
     def one() -> None:
-        res = model(b["blurry"], b["voxels"])
+        with autocast(torch.device("cpu"), dtype):
+            res = forward(model, b, needs_contrast=bool(getattr(model, "needs_contrast", False)),
+                          timing=bool(getattr(model, "timing", False)))
+        res = res.float()
         loss, _ = total_loss({"residuals": res, "latent": reconstruct(b["blurry"], res)}, b, r)
         opt.zero_grad()
         loss.backward()
@@ -74,18 +82,22 @@ def simulate_time(crop: int, count: int) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--model", default="trmd_small")
-    ap.add_argument("--crop", type=int, default=128)
-    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--model", default="trmd_small_edi_c_fr_t")
+    ap.add_argument("--crop", type=int, default=96)
+    ap.add_argument("--batch", type=int, default=14)
     ap.add_argument("--steps", type=int, default=5)
     args = ap.parse_args()
     print(machine())
     print(f"{args.model}, crop {args.crop}, batch {args.batch}: seconds per training step")
+    from trmd_cli.precision import cpu_has_native_bf16
+
+    precisions = ["fp32", "bf16"] if cpu_has_native_bf16() else ["fp32"]
     for threads in (1, 2):
         for cl in (False, True):
-            s = step_time(args.model, args.crop, args.batch, args.steps, threads, cl)
-            print(f"  threads {threads}  channels_last {cl!s:5}  {s:.3f} s/step  "
-                  f"{args.batch / s:.1f} samples/s")
+            for prec in precisions:
+                s = step_time(args.model, args.crop, args.batch, args.steps, threads, cl, prec)
+                print(f"  threads {threads}  channels_last {cl!s:5}  {prec:4s}  {s:.3f} s/step  "
+                      f"{args.batch / s:.1f} samples/s")
     s = simulate_time(args.crop, 12)
     print(f"simulating one {args.crop}x{args.crop} sample on the fly: {s * 1000:.0f} ms "
           f"({1 / s:.1f} samples/s on one core)")

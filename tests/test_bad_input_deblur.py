@@ -376,6 +376,12 @@ CASES = [
          "unknown method 'magic'", names="--method"),
     Case("device-unknown", lambda d, g: _img_ev(g.image, g, *_trmd(g.weights, "--device", "tpu")),
          "unknown device 'tpu'", names="tpu"),
+    Case("precision-unknown", lambda d, g: _img_ev(g.image, g, *_trmd(g.weights, "--precision",
+                                                                      "half")),
+         "unknown precision 'half'", names="--precision"),
+    Case("precision-fp16-on-cpu", lambda d, g: _img_ev(
+        g.image, g, *_trmd(g.weights, "--device", "cpu", "--precision", "fp16")),
+         "float16 needs a CUDA device", names="--precision"),
     Case("bit-depth-12", lambda d, g: _img_ev(g.image, g, "--bit-depth", "12"), "8 or 16",
          names="--bit-depth"),
     Case("time-offset-not-a-duration", lambda d, g: ([g.recording], ["--time-offset", "soon"]),

@@ -213,6 +213,13 @@ def test_trmd_method_with_tiny_weights(pair, tmp_path):
     assert r.exit_code == 0, r.output
     meta = json.loads((out / "meta.json").read_text())
     assert meta["method"] == "trmd" and meta["n"] == 2 and meta["weights_hash"]
+    from trmd_cli.precision import cpu_has_native_bf16
+
+    assert meta["precision"] == ("bf16" if cpu_has_native_bf16() else "fp32")  # auto
+    r = run(img, ev, "-o", tmp_path / "o32", "--method", "trmd", "--weights", w, "--threads",
+            "1", "--precision", "fp32")
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "o32" / "meta.json").read_text())["precision"] == "fp32"
     frames = [read_image(out / f"frame_{k:03d}.png") for k in range(5)]
     # TRMD's reconstruction keeps the blurry frame as the mean of its latent frames
     np.testing.assert_allclose(np.mean(frames, axis=0).mean(), read_image(img).mean(),

@@ -94,6 +94,8 @@ def test_output_shape_any_size(h, w, batch):
 
 @pytest.mark.parametrize("n,channels", [(1, 1), (3, 1), (2, 3)])
 def test_forward_backward_odd_size(n, channels):
+    # seeded: with 4-channel layers some draws leave a layer's ReLUs all dead on one input
+    torch.manual_seed(n)
     m = create_model("test_trmd", n=n, channels=channels).train()
     b, v = _inputs(2, channels, n, 37, 53)
     out = m(b, v)

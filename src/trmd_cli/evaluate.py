@@ -866,7 +866,7 @@ def _lpips_fn():
 
 
 def _load_trmd(weights: str | Path | None, n: int, device: str = "auto",
-               threads: int | None = None):
+               threads: int | None = None, precision: str = "auto"):
     """(pipeline.TrmdMethod, None), or (None, note) when no weights are given and none ship."""
     from .weights import default_weights_path
 
@@ -875,7 +875,7 @@ def _load_trmd(weights: str | Path | None, n: int, device: str = "auto",
                       "pass --weights PATH to a .safetensors file from `trmd train`")
     from .pipeline import TrmdMethod
 
-    return TrmdMethod(n, weights, device, threads), None
+    return TrmdMethod(n, weights, device, threads, precision=precision), None
 
 
 def evaluate_dataset(
@@ -999,16 +999,17 @@ def evaluate(
     on_frame: Callable[[FrameOutputs], None] | None = None,
     device: str = "auto",
     threads: int | None = None,
+    precision: str = "auto",
 ) -> EvalReport:
     """:func:`evaluate_dataset` over several datasets, loading the weights once (on
-    ``device``, with ``threads`` torch CPU threads).
+    ``device``, with ``threads`` torch CPU threads, the network in ``precision``).
 
     ``progress`` is called as ``progress(dataset_path, done, total)``.
     """
     methods = parse_methods(methods)
     trmd, notes = None, []
     if "trmd" in methods:
-        trmd, note = _load_trmd(weights, n, device, threads)
+        trmd, note = _load_trmd(weights, n, device, threads, precision)
         if note:
             notes.append(note)
     reports = []

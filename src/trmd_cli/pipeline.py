@@ -71,7 +71,9 @@ class MethodConfig:
             input when its weights take one (``prior="edi_c"``, as the shipped default) and to
             place frames at instants between its own (event integration).
         hot_pixels: ignore the events of hot pixels (see :func:`trmd_cli.edi.hot_pixel_mask`).
-        weights, device, threads: TRMD only (see ``TrmdEstimator.load``).
+        weights, device, threads, precision: TRMD only (see ``TrmdEstimator.load``;
+            ``precision="auto"`` runs the network in bfloat16 on CPUs that compute it natively
+            — on the pinned validation set within 0.003 dB of float32).
     """
 
     method: str = DEFAULT_METHOD
@@ -81,6 +83,7 @@ class MethodConfig:
     weights: str | Path | None = None
     device: str = "auto"
     threads: int | None = None
+    precision: str = "auto"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -90,6 +93,11 @@ class MethodConfig:
         if self.contrast is not None and not (np.isfinite(self.contrast) and self.contrast > 0):
             raise InputError(f"--contrast must be a positive number or 'auto', got "
                              f"{self.contrast}")
+        from .precision import PRECISIONS
+
+        if self.precision not in PRECISIONS:
+            raise InputError(f"unknown precision {self.precision!r}",
+                             hint="use --precision " + ", ".join(PRECISIONS))
 
 
 @dataclass(frozen=True, eq=False)
@@ -165,12 +173,16 @@ class TrmdMethod:
 
     def __init__(self, n: int | None = None, weights: str | Path | None = None,
                  device: str = "auto", threads: int | None = None,
-                 contrast: float | None = None, hot_pixels: bool = True) -> None:
+                 contrast: float | None = None, hot_pixels: bool = True,
+                 precision: str = "auto") -> None:
         from .models.estimator import TrmdEstimator
 
-        self.model = TrmdEstimator.load(weights, device=device, threads=threads, expect_n=n)
+        self.model = TrmdEstimator.load(weights, device=device, threads=threads, expect_n=n,
+                                        precision=precision)
         self.n = self.model.n
         self.weights_hash = self.model.weights_hash
+        #: the network's arithmetic as run: "fp32", "bf16" or "fp16" (mixed precision)
+        self.precision = self.model.precision
         self._edi = EdiMethod(self.n, contrast, hot_pixels)
         #: settle c even when no in-between instant needs it (hfr fills gaps with it)
         self.always_contrast = False
@@ -206,7 +218,7 @@ def make_method(config: MethodConfig) -> Method:
     """The estimator for ``config.method`` (loads TRMD weights once)."""
     if config.method == "trmd":
         return TrmdMethod(config.n, config.weights, config.device, config.threads,
-                          config.contrast, config.hot_pixels)
+                          config.contrast, config.hot_pixels, config.precision)
     return EdiMethod(config.n or DEFAULT_N, config.contrast, config.hot_pixels)
 
 

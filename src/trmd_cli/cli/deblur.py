@@ -25,6 +25,7 @@ from .options import (
     Exposure,
     OneBased,
     Overwrite,
+    Precision,
     Sensor,
     Threads,
     TimeUnit,
@@ -84,14 +85,16 @@ def choose_method(method: str | None, weights: Path | None, default: str) -> str
 
 
 def method_config(method: str | None, weights: Path | None, n: int | None, contrast: str,
-                  hot_pixels: bool, device: str, threads: int | None, bit_depth: int):
+                  hot_pixels: bool, device: str, threads: int | None, bit_depth: int,
+                  precision: str = "auto"):
     """The options deblur and hfr share, checked and turned into a ``MethodConfig``."""
     from ..errors import InputError
     from ..pipeline import DEFAULT_METHOD, MethodConfig
 
     config = MethodConfig(method=choose_method(method, weights, DEFAULT_METHOD), n=n,
                           contrast=parse_contrast(contrast), hot_pixels=hot_pixels,
-                          weights=weights, device=device, threads=threads)
+                          weights=weights, device=device, threads=threads,
+                          precision=precision)
     if bit_depth not in (8, 16):
         raise InputError(f"--bit-depth must be 8 or 16, got {bit_depth}",
                          hint="use --bit-depth 8 or --bit-depth 16")
@@ -118,6 +121,7 @@ def deblur(
     weights: Weights = None,
     device: Device = "auto",
     threads: Threads = None,
+    precision: Precision = "auto",
     time_unit: TimeUnit = None,
     sensor: Sensor = None,
     columns: Columns = None,
@@ -140,7 +144,7 @@ def deblur(
         raise InputError(f"deblur takes one or two inputs, got {len(inputs)}",
                          hint="for several images use a frames folder, or `trmd hfr`")
     config = method_config(method, weights, n, contrast, hot_pixels, device, threads,
-                           bit_depth)
+                           bit_depth, precision)
     if video is not None and not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 10")
     offset = parse_duration_us(time_offset) if time_offset else 0
@@ -167,6 +171,7 @@ def deblur(
             "method": est.name,
             "n": est.n,
             "weights_hash": est.weights_hash,
+            "precision": getattr(est, "precision", None),
             "inputs": ins.paths,
             "time_offset_us": offset,
             "contrast_mode": "given" if config.contrast is not None else "auto",

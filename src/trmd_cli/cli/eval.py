@@ -15,6 +15,7 @@ from .options import (
     N,
     OneBased,
     Overwrite,
+    Precision,
     Sensor,
     Threads,
     TimeUnit,
@@ -55,6 +56,7 @@ def eval_command(
     overwrite: Overwrite = False,
     device: Device = "auto",
     threads: Threads = None,
+    precision: Precision = "auto",
     time_unit: TimeUnit = None,
     columns: Columns = None,
     one_based: OneBased = False,
@@ -87,7 +89,8 @@ def eval_command(
     def run(on_frame=None):
         with progress:
             return evaluate(datasets, chosen, n, limit, weights, advance, ground_truth=gt,
-                            options=options, on_frame=on_frame, device=device, threads=threads)
+                            options=options, on_frame=on_frame, device=device, threads=threads,
+                            precision=precision)
 
     if strip is None:
         report = run()

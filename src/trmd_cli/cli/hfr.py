@@ -34,6 +34,7 @@ from .options import (
     Exposure,
     OneBased,
     Overwrite,
+    Precision,
     Sensor,
     Threads,
     TimeUnit,
@@ -68,6 +69,7 @@ def hfr(
     weights: Weights = None,
     device: Device = "auto",
     threads: Threads = None,
+    precision: Precision = "auto",
     time_unit: TimeUnit = None,
     sensor: Sensor = None,
     columns: Columns = None,
@@ -90,7 +92,7 @@ def hfr(
     from ..write import atomic_dir, check_output, write_image, write_json, write_text
 
     config = method_config(method, weights, n, contrast, hot_pixels, device, threads,
-                           bit_depth)
+                           bit_depth, precision)
     if not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 30")
     offset = parse_duration_us(time_offset) if time_offset else 0
@@ -148,6 +150,7 @@ def hfr(
                     write_json(tmp / "meta.json", {
                         "tool": f"trmd {__version__}", "method": est.name, "n": est.n,
                         "weights_hash": est.weights_hash, "inputs": ins.paths,
+                        "precision": getattr(est, "precision", None),
                         "per_exposure": per_exposure or 2 * est.n + 1, "fps": fps,
                         "fill_gaps": fill_gaps, "time_offset_us": offset,
                         "contrast": contrasts, "frames": count})

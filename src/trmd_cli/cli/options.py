@@ -35,6 +35,9 @@ Overwrite = Annotated[bool, typer.Option("--overwrite", help="Replace an existin
 Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")]
 Threads = Annotated[Optional[int], typer.Option("--threads", min=1,
                                                 help="CPU threads for torch (default: all).")]
+Precision = Annotated[str, typer.Option(
+    "--precision", help="The network's arithmetic: auto (bfloat16 on CPUs with AMX / "
+    "AVX512-BF16, float16 on CUDA, else float32), fp32, bf16 or fp16.")]
 
 _UNIT_US = {"s": 1e6, "ms": 1e3, "us": 1.0, "µs": 1.0, "ns": 1e-3}
 

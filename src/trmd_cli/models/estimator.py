@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError, ShapeError
+from ..precision import autocast, resolve_precision
 from ..reconstruct import reconstruct
 from ..weights import load_weights, resolve_device, weights_hash
 from .renet import RENet
@@ -36,24 +37,31 @@ class TrmdEstimator:
     """
 
     def __init__(self, model: RENet, meta: dict[str, Any] | None = None,
-                 weights_hash: str | None = None) -> None:
+                 weights_hash: str | None = None, precision: str = "fp32") -> None:
         self.model = model.eval()
         self._meta = dict(meta or {})
         self._hash = weights_hash
         self.device = next(model.parameters()).device
+        #: autocast dtype of the network's convolutions (None = float32), from ``precision``
+        #: (:func:`trmd_cli.precision.resolve_precision`)
+        self.amp_dtype = resolve_precision(precision, self.device)
 
     @classmethod
     def load(cls, weights: str | Path | None = None, *, device: str = "auto",
-             threads: int | None = None, expect_n: int | None = None) -> TrmdEstimator:
+             threads: int | None = None, expect_n: int | None = None,
+             precision: str = "fp32") -> TrmdEstimator:
         """Load weights (None = the shipped default) onto ``device`` ("auto": cuda if available).
 
         Args:
+            precision: ``fp32`` (default), ``auto`` (mixed precision where the device computes
+                it natively: float16 on CUDA, bfloat16 on CPUs with AMX / AVX512-BF16), ``bf16``
+                or ``fp16`` (see :mod:`trmd_cli.precision`).
             threads: CPU threads for torch (``torch.set_num_threads``); None leaves torch's
                 default (all cores).
             expect_n: refuse weights trained for another N (:class:`WeightsError`).
         Raises:
             WeightsError: missing, corrupt or mismatching weights (see :func:`load_weights`).
-            InputError: unknown or unavailable device, threads < 1.
+            InputError: unknown or unavailable device, threads < 1, unknown precision.
         """
         if threads is not None:
             if threads < 1:
@@ -65,7 +73,7 @@ class TrmdEstimator:
             from ..weights import default_weights_path
 
             path = default_weights_path()
-        return cls(model, meta, weights_hash(path))
+        return cls(model, meta, weights_hash(path), precision=precision)
 
     @property
     def n(self) -> int:
@@ -81,6 +89,11 @@ class TrmdEstimator:
     def meta(self) -> dict[str, Any]:
         """Metadata of the weights file (architecture, args, recipe, figures …)."""
         return dict(self._meta)
+
+    @property
+    def precision(self) -> str:
+        """The network's arithmetic as run: ``fp32``, or ``bf16`` / ``fp16`` mixed precision."""
+        return {None: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}[self.amp_dtype]
 
     @property
     def weights_hash(self) -> str | None:
@@ -158,7 +171,9 @@ class TrmdEstimator:
         with torch.inference_mode():
             tb = torch.from_numpy(np.ascontiguousarray(b)).to(self.device)
             tv = torch.from_numpy(voxels).to(self.device)[None].expand(b.shape[0], -1, -1, -1)
-            latent = reconstruct(tb, self.model(tb, tv, contrast))  # (batch, 2N+1, C, H, W)
+            with autocast(self.device, self.amp_dtype):
+                residuals = self.model(tb, tv, contrast)
+            latent = reconstruct(tb, residuals.float())  # (batch, 2N+1, C, H, W)
             out = latent.float().cpu().numpy()
 
         if rgb and self.channels == 1:

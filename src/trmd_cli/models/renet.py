@@ -130,8 +130,12 @@ def channel_cross_attention(key: torch.Tensor, query: torch.Tensor, value: torch
     """
     check_shape(value, tuple(key.shape), "value")
     b, c, h, w = value.shape
-    attn = (channel_attention_logits(key, query, norm) * temperature).softmax(dim=-1)
-    return torch.matmul(attn, value.reshape(b, c, h * w)).reshape(b, c, h, w)
+    # the logits sum over all H·W pixels: in float16 (mixed precision on CUDA) a full frame
+    # overflows, so they and the softmax stay in float32 whatever the autocast
+    with torch.autocast(device_type=key.device.type, enabled=False):
+        logits = channel_attention_logits(key.float(), query.float(), norm)
+        attn = (logits * temperature).softmax(dim=-1)
+    return torch.matmul(attn.to(value.dtype), value.reshape(b, c, h * w)).reshape(b, c, h, w)
 
 
 class ChannelAttention(nn.Module):
@@ -459,23 +463,109 @@ class RENet(nn.Module):
     #: weights whose input channels grow with ``timing`` (the new ones are appended, zero)
     TIMING_INPUTS = ("blur_fe.conv1.0.weight", "event_fe.conv1.0.weight", "head.weight")
 
+    def _unet_layouts(self, old: dict[str, int]) -> dict[str, tuple[list, list]]:
+        """Per U-Net module: (output, input) channel layouts as [(old, new) …] segments —
+        concatenated inputs have one segment per part — for widths ``old`` → this network's."""
+        own = {"w0": self.args["widths"][0], "w1": self.args["widths"][1],
+               "w2": self.args["widths"][2], "w3": self.args["widths"][3],
+               "hs": self._head_skip, "rw": self.args.get("refine_width", self._head_skip)}
+        seg = {k: (old[k], own[k]) for k in own}
+        fw = self.args["feat_width"]
+        feat = (fw, fw)
+        out: dict[str, tuple[list, list]] = {
+            "down1.0": ([seg["w0"]], [feat]), "down2.0": ([seg["w1"]], [seg["w0"]]),
+            "down3.0": ([seg["w2"]], [seg["w1"]]), "down4.0": ([seg["w3"]], [seg["w2"]]),
+            "up1.0": ([seg["w2"]], [seg["w3"]]),
+            "up2.0": ([seg["w1"]], [seg["w2"], seg["w2"]]),
+            "up3.0": ([seg["w0"]], [seg["w1"], seg["w1"]]),
+            "up4.0": ([seg["hs"]], [seg["w0"], seg["w0"]]),
+        }
+        for i in range(len(self.res)):
+            for j in (0, 1, 3, 4):
+                out[f"res.{i}.body.{j}"] = ([seg["w3"]], [seg["w3"]])
+        if self.refine is not None:
+            k = len(self.refine)
+            for i in range(k):
+                ins = [seg["hs"], feat] if i == 0 else [seg["rw"]]
+                out[f"refine.{i}.0"] = ([seg["hs"] if i == k - 1 else seg["rw"]], ins)
+        rest = self.head.weight.shape[1] - self._head_skip
+        out["head"] = ([(self.head.weight.shape[0],) * 2], [seg["hs"], (rest, rest)])
+        return out
+
+    def _widen_state(self, state: dict[str, torch.Tensor]) -> tuple[dict, list[str]]:
+        """``state`` of a narrower U-Net (same feature extractors and fusion) placed in this
+        network's tensors: old weights at the old channels; weights from new input channels to
+        old output channels zero, so the network computes what the narrow one did; the new
+        output channels keep their random initialisation, so they carry signal that the zero
+        weights learn from. Returns the state and the names widened ([] when none)."""
+        own = self.state_dict()
+        probe = state.get("down1.0.weight")
+        if probe is None or probe.shape[0] == own["down1.0.weight"].shape[0]:
+            return state, []
+        old = {"w0": state["down1.0.weight"].shape[0], "w1": state["down2.0.weight"].shape[0],
+               "w2": state["down3.0.weight"].shape[0], "w3": state["down4.0.weight"].shape[0],
+               "hs": state["up4.0.weight"].shape[1]}
+        old["rw"] = state["refine.0.0.weight"].shape[0] if "refine.0.0.weight" in state \
+            else old["hs"]
+
+        layouts = self._unet_layouts(old)
+        if any(o > n for outs, ins in layouts.values() for o, n in outs + ins):
+            raise RuntimeError("Error(s) in loading state_dict: the weights' U-Net is wider "
+                               "than this network's (a network can grow, not shrink)")
+
+        def old_index(layout: list) -> torch.Tensor:
+            idx, off = [], 0
+            for o, n in layout:
+                idx.append(torch.arange(off, off + o))
+                off += n
+            return torch.cat(idx)
+
+        state, widened = dict(state), []
+        for module, (outs, ins) in layouts.items():
+            oi, ii = old_index(outs), old_index(ins)
+            for name in [k for k in own if k.rsplit(".", 1)[0] == module]:
+                if name not in state or state[name].shape == own[name].shape:
+                    continue
+                src, dst = state[name], own[name].clone()
+                if name.endswith("num_batches_tracked"):
+                    continue
+                if dst.ndim == 1:
+                    dst[oi] = src.to(dst.dtype)
+                else:
+                    # ConvTranspose2d stores (in, out, k, k), Conv2d (out, in, k, k)
+                    o_dim, i_dim = (1, 0) if module.startswith("up") else (0, 1)
+                    new_in = torch.ones(dst.shape[i_dim], dtype=torch.bool)
+                    new_in[ii] = False
+                    rows = dst.index_select(o_dim, oi)
+                    rows.index_fill_(i_dim, new_in.nonzero().flatten(), 0.0)
+                    if src.shape[i_dim] != len(ii) or src.shape[o_dim] != len(oi):
+                        raise RuntimeError(f"Error(s) in loading state_dict: size mismatch for "
+                                           f"{name}: {tuple(src.shape)} does not fit "
+                                           f"{tuple(dst.shape)} grown")
+                    rows.index_copy_(i_dim, ii, src.to(dst.dtype))
+                    dst.index_copy_(o_dim, oi, rows)
+                state[name] = dst
+                widened.append(name)
+        return state, widened
+
     def load_grown(self, state: dict[str, torch.Tensor]) -> list[str]:
-        """Load weights of the same network without the full-resolution refinement and/or
-        without the timing inputs.
+        """Load weights of the same network without the full-resolution refinement, without
+        the timing inputs and/or with a narrower U-Net.
 
         Every tensor of ``state`` must fit, except that the refinement's tensors may be
-        missing (they keep their identity initialisation) and, with ``timing``, the first
+        missing (they keep their identity initialisation); with ``timing``, the first
         convolutions of both feature extractors and the head may lack exactly the timing input
-        channels (those weights start at zero). Either way the network computes exactly what
-        the weights computed before. Returns the names that were grown.
+        channels (those weights start at zero); and the U-Net's widths (``widths``, the
+        refinement's width) may be smaller (see :meth:`_widen_state`). Either way the network
+        computes exactly what the weights computed before. Returns the names that were grown.
 
         Raises:
             RuntimeError: unexpected, mismatched or other missing tensors (as
                 ``load_state_dict``).
         """
-        state = dict(state)
+        state, widened = self._widen_state(dict(state))
         own = self.state_dict()
-        widened = []
+        timed: list[str] = []
         if self.timing:
             extra = dict(zip(self.TIMING_INPUTS, (self._timing_in[0], self._timing_in[1],
                                                   sum(self._timing_in))))
@@ -486,9 +576,9 @@ class RENet(nn.Module):
                     grown = torch.zeros_like(new)
                     grown[:, :old.shape[1]] = old.to(new.dtype)
                     state[name] = grown
-                    widened.append(name)
-            if widened and len(widened) != len(extra):
-                raise RuntimeError(f"Error(s) in loading state_dict: only {widened} lack the "
+                    timed.append(name)
+            if timed and len(timed) != len(extra):
+                raise RuntimeError(f"Error(s) in loading state_dict: only {timed} lack the "
                                    "timing inputs")
         missing, unexpected = self.load_state_dict(state, strict=False)
         other = [k for k in missing if not k.startswith(self.GROWN_PREFIXES)]
@@ -500,7 +590,7 @@ class RENet(nn.Module):
                                f"unexpected {list(unexpected)[:3]}")
         if missing:
             self._init_refine()
-        return list(missing) + widened
+        return list(missing) + timed + widened
 
     @property
     def needs_contrast(self) -> bool:

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError, OutputExistsError, TrmdError, WeightsError
+from ..precision import autocast, resolve_precision
 from . import ddp
 from .checkpoint import load_checkpoint, read_checkpoint_state, save_checkpoint
 from .data import DataPlan, EpochSampler, build_data, set_epoch
@@ -164,12 +165,13 @@ def _to_device(batch: dict[str, torch.Tensor], device: torch.device,
 
 @torch.no_grad()
 def evaluate(model: torch.nn.Module, dataset, *, dist: ddp.Dist | None = None,
-             batch_size: int = 1, amp: bool = False, fallback_contrast: float = 0.2
-             ) -> tuple[float, float, int]:
+             batch_size: int = 1, amp_dtype: torch.dtype | None = None,
+             fallback_contrast: float = 0.2) -> tuple[float, float, int]:
     """Mean validation PSNR (dB, data range 1, outputs clipped to [0, 1]) over ``dataset``.
 
     Networks that take the threshold c get each sample's true c (``fallback_contrast`` where
     the data has none) — in use they get an estimate, so this is slightly optimistic for them.
+    ``amp_dtype``: autocast dtype of the network (None = float32; see :mod:`trmd_cli.precision`).
 
     Returns:
         (middle-frame PSNR, sequence PSNR = mean of the per-frame PSNRs, sample count); each
@@ -191,8 +193,7 @@ def evaluate(model: torch.nn.Module, dataset, *, dist: ddp.Dist | None = None,
             items = [dataset[i] for i in idx[start:start + batch_size]]
             batch = {k: torch.stack([it[k] for it in items]).to(device) for k in
                      ("blurry", "voxels", "levels", "sharp", "contrast") if k in items[0]}
-            with torch.autocast(device_type=device.type, dtype=torch.float16,
-                                enabled=amp and device.type == "cuda"):
+            with autocast(device, amp_dtype):
                 residuals = forward(model, batch, fallback_contrast=fallback_contrast,
                                     needs_contrast=getattr(model, "needs_contrast", False),
                                     timing=bool(getattr(model, "timing", False)))
@@ -369,8 +370,13 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
     # on resume the checkpoint's average replaces this copy; otherwise it starts from the
     # initial weights, so it is made only after --init-weights is loaded
     ema = WeightAverage(model, r.optim.ema) if r.optim.ema > 0 and resumed is not None else None
-    use_amp = tr.amp and dist.device.type == "cuda"
-    scaler = torch.amp.GradScaler("cuda", enabled=use_amp) if use_amp else None
+    # mixed precision where the hardware runs it natively: float16 on CUDA (with loss
+    # scaling), bfloat16 on CPUs with AMX / AVX512-BF16 (same range as float32: no scaling)
+    amp_dtype = resolve_precision("auto" if tr.amp else "fp32", dist.device)
+    use_scaler = amp_dtype == torch.float16
+    scaler = torch.amp.GradScaler("cuda") if use_scaler else None
+    # validation stays in float32 on CPU so figures compare across runs and machines
+    val_dtype = amp_dtype if dist.device.type == "cuda" else None
 
     step, seconds_before = 0, 0.0
     history: list[dict] = []
@@ -388,14 +394,21 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
                          f"{doc.get('world')}: the batches differ from an uninterrupted run")
     elif init_weights is not None:
         grown = _load_init(model, init_weights, r)
-        widened = [k for k in grown if k in getattr(model, "TIMING_INPUTS", ())]
-        added = sorted({k.split(".")[0] for k in grown if k not in widened})
+        timing_in = getattr(model, "TIMING_INPUTS", ())
+        timed = [k for k in grown if k in timing_in[:2]]
+        # a wider U-Net lists all its layers as grown (down1 is never grown otherwise)
+        wider = "down1.0.weight" in grown
+        added = [] if wider else sorted({k.split(".")[0] for k in grown if k not in timing_in})
         if added:
             notes.append(f"--init-weights had no {', '.join(added)} layers: they start as an "
                          "identity, so the run starts from exactly what those weights computed")
-        if widened:
+        if timed:
             notes.append("--init-weights had no timing inputs: their weights start at zero, "
                          "so the run starts from exactly what those weights computed")
+        if wider:
+            notes.append("--init-weights has a narrower U-Net: the new channels start random, "
+                         "their weights into the old ones at zero, so the run starts from "
+                         "exactly what those weights computed")
     if ema is None and r.optim.ema > 0:
         ema = WeightAverage(model, r.optim.ema)
 
@@ -443,7 +456,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
             return
         tv = clock()
         vb = r.data.batch_size if r.data.val_crop else 1
-        mid, seq, _ = evaluate(judged, plan.val, dist=dist, batch_size=vb, amp=use_amp,
+        mid, seq, _ = evaluate(judged, plan.val, dist=dist, batch_size=vb, amp_dtype=val_dtype,
                                fallback_contrast=r.loss.contrast)
         val_time = clock() - tv
         last_val.update(psnr_mid=mid, psnr_seq=seq, step=step)
@@ -486,6 +499,8 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
         "run_dir": str(run_dir), "recipe": r.name, "model": r.model.name,
         "train": plan.sources, "validation": plan.val_source, "batches_per_epoch": bpe,
         "world": dist.world, "device": str(dist.device), "threads": torch.get_num_threads(),
+        "precision": {None: "float32", torch.bfloat16: "bfloat16 (mixed)",
+                      torch.float16: "float16 (mixed)"}[amp_dtype],
         "resumed_at": step if resumed is not None else None})
     for note in notes:
         reporter.note(note)
@@ -508,8 +523,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
                 for g in optimizer.param_groups:
                     g["lr"] = lr
                 b = _to_device(raw, dist.device, tr.channels_last)
-                with torch.autocast(device_type=dist.device.type, dtype=torch.float16,
-                                    enabled=use_amp):
+                with autocast(dist.device, amp_dtype):
                     residuals = forward(model, b, needs_contrast=needs_contrast,
                                         jitter=r.data.contrast_jitter,
                                         fallback_contrast=r.loss.contrast,

@@ -116,7 +116,9 @@ class TrainSpec:
     steps: int = 20000  # optimiser steps in total (all processes step together)
     epochs: int = 0  # > 0: steps = epochs × batches per epoch (overrides steps)
     time_budget_minutes: float = 0.0  # stop cleanly (validate, save) before this; 0 = none
-    amp: bool = True  # mixed precision, CUDA only
+    # mixed precision where the hardware computes it natively: float16 on CUDA, bfloat16 on
+    # CPUs with AMX / AVX512-BF16 (about 2× faster there); float32 elsewhere or when false
+    amp: bool = True
     val_every: int = 500  # steps
     log_every: int = 20  # steps between rows of log.csv
     checkpoint_every: int = 500  # steps
