@@ -891,6 +891,7 @@ def evaluate_dataset(
     trmd=None,
     lpips: bool | None = None,
     on_frame: Callable[[FrameOutputs], None] | None = None,
+    precision: str = "auto",
 ) -> DatasetReport:
     """Run the methods on one dataset and score them.
 
@@ -909,6 +910,8 @@ def evaluate_dataset(
             datasets by :func:`evaluate`); overrides ``weights``.
         lpips: compute LPIPS (None = when :func:`lpips_status` says it can).
         on_frame: called with each frame's :class:`FrameOutputs` (compare strips).
+        precision: the network's arithmetic when ``weights`` are loaded here
+            (:mod:`trmd_cli.precision`).
     Returns:
         :class:`DatasetReport`.
     Raises:
@@ -934,7 +937,7 @@ def evaluate_dataset(
             skipped["edi-true-c"] = ("edi-true-c skipped: the data stores no true contrast "
                                      "threshold (only simulated sets do)")
         if "trmd" in methods and trmd is None:
-            trmd, note = _load_trmd(weights, n)
+            trmd, note = _load_trmd(weights, n, precision=precision)
             if note:
                 skipped["trmd"] = note
         notes.extend(skipped.values())

@@ -132,8 +132,10 @@ def channel_cross_attention(key: torch.Tensor, query: torch.Tensor, value: torch
     b, c, h, w = value.shape
     # the logits sum over all H·W pixels: in float16 (mixed precision on CUDA) a full frame
     # overflows, so they and the softmax stay in float32 whatever the autocast
+    wide = (torch.float32, torch.float64)
     with torch.autocast(device_type=key.device.type, enabled=False):
-        logits = channel_attention_logits(key.float(), query.float(), norm)
+        logits = channel_attention_logits(key if key.dtype in wide else key.float(),
+                                          query if query.dtype in wide else query.float(), norm)
         attn = (logits * temperature).softmax(dim=-1)
     return torch.matmul(attn.to(value.dtype), value.reshape(b, c, h * w)).reshape(b, c, h, w)
 
