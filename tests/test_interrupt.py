@@ -244,3 +244,22 @@ def test_sweep_restores_a_folder_output_cut_between_its_two_renames(tmp_path):
     sweep_stale_temps(out)
     assert (out / "000001.png").read_bytes() == PREVIOUS
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]
+
+
+def test_an_interrupt_lost_in_a_finaliser_reaches_the_main_thread_after_the_hook():
+    # CPython prints and drops exceptions raised inside sys.unraisablehook, so the hook must
+    # return normally and the interrupt arrive afterwards, where the command can unwind
+    import time
+    import types
+
+    from trmd_cli.cli import boundary
+
+    hook = types.SimpleNamespace(exc_type=KeyboardInterrupt, exc_value=KeyboardInterrupt(),
+                                 exc_traceback=None, err_msg=None, object=None)
+    returned = False
+    with pytest.raises(KeyboardInterrupt):
+        boundary._unraisable(hook)
+        returned = True
+        for _ in range(200):
+            time.sleep(0.01)
+    assert returned

@@ -59,8 +59,12 @@ def _unraisable(hook) -> None:
     if isinstance(hook.exc_value, KeyboardInterrupt):
         import _thread
 
-        _thread.interrupt_main(signal.SIGTERM if isinstance(hook.exc_value, Terminated)
-                               else signal.SIGINT)
+        signum = signal.SIGTERM if isinstance(hook.exc_value, Terminated) else signal.SIGINT
+        # from another thread, a moment later: delivered now, the handler would raise inside
+        # this hook, where the exception is printed with a traceback and lost again
+        timer = threading.Timer(0.05, _thread.interrupt_main, args=(signum,))
+        timer.daemon = True
+        timer.start()
         return
     if state["verbose"]:
         sys.__unraisablehook__(hook)
