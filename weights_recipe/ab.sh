@@ -16,6 +16,13 @@
 #            Equal in steps, not minutes: the arms ran one after the other on both threads
 #            (the timing arm's data costs ~25 % more per step), with no time budget. A repeat
 #            of the timing arm with --set seed=7 --stop-after 1000 checked the gain (ab5/).
+#   round 6: from v6 ($RUNS/s6-timing/final.safetensors), all four sets, bfloat16 (amp, on a
+#            CPU with AMX), data.num_workers = 1 — v6 continued (a 3,000-step cosine, stopped
+#            at step 1,000) vs the U-Net grown 1.5x wider (widths 48–384, refinement 32; a
+#            4,000-step cosine, stopped at step 1,000 when it had not moved) (ab6/).
+#   round 7: the same start and settings, a 2,000-step cosine — the four sets vs the four
+#            sets plus 6,000 samples of new content: dead-leaves images and sam2 video frames
+#            (make_extra_images.py, then make_trainset.py as below) (ab7/).
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 RUNS=${RUNS:-$here/../../runs}
@@ -33,6 +40,35 @@ if [ "$round" = 5 ]; then
     --set 'model.name="trmd_small_edi_c_fr_t"' --out "$RUNS/ab5/timing" --overwrite \
     > "$RUNS/ab5/timing.log" 2>&1
   for name in control timing; do echo "== $name"; grep -v ',,,' "$RUNS/ab5/$name/log.csv"; done
+  exit 0
+fi
+if [ "$round" = 6 ] || [ "$round" = 7 ]; then
+  mkdir -p "$RUNS/ab$round"
+  sets=(--data "$RUNS/train_128.h5" --data "$RUNS/train_128_hard.h5"
+        --data "$RUNS/train_128_bright.h5" --data "$RUNS/train_128_bright2.h5")
+  six=(--set "data.val_data=$RUNS/valset_kodak24.h5" --set train.amp=true
+       --set data.num_workers=1 --set train.time_budget_minutes=0 --set train.val_every=1000
+       --init-weights "$RUNS/s6-timing/final.safetensors")
+  if [ "$round" = 6 ]; then
+    trmd train --recipe "$here/recipe.toml" "${six[@]}" "${sets[@]}" --set train.steps=3000 \
+      --stop-after 1000 --out "$RUNS/ab6/control" --overwrite > "$RUNS/ab6/control.log" 2>&1
+    trmd train --recipe "$here/recipe.toml" "${six[@]}" "${sets[@]}" --set train.steps=4000 \
+      --set 'model.args={widths=[48, 96, 192, 384], refine_width=32}' --stop-after 1000 \
+      --out "$RUNS/ab6/wide" --overwrite > "$RUNS/ab6/wide.log" 2>&1
+    for name in control wide; do echo "== $name"; grep -v ',,,' "$RUNS/ab6/$name/log.csv"; done
+    exit 0
+  fi
+  extra="$RUNS/train_128_extra.h5"
+  if [ ! -f "$extra" ]; then
+    python "$here/make_extra_images.py" "$RUNS/extra_root"
+    python "$here/make_trainset.py" "$RUNS/extra_root" -o "$extra" --count 6000 --seed 5 \
+      --workers 2 --exposure-ms 10 40 --gain 0.6 1.0 --read-noise 0 0.005
+  fi
+  trmd train --recipe "$here/recipe.toml" "${six[@]}" "${sets[@]}" --set train.steps=2000 \
+    --out "$RUNS/ab7/control" --overwrite > "$RUNS/ab7/control.log" 2>&1
+  trmd train --recipe "$here/recipe.toml" "${six[@]}" "${sets[@]}" --data "$extra" \
+    --set train.steps=2000 --out "$RUNS/ab7/diverse" --overwrite > "$RUNS/ab7/diverse.log" 2>&1
+  for name in control diverse; do echo "== $name"; grep -v ',,,' "$RUNS/ab7/$name/log.csv"; done
   exit 0
 fi
 minutes=${AB_MINUTES:-16}

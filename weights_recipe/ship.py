@@ -22,10 +22,10 @@ METHODS = ("blurry", "edi-true-c", "edi", "trmd")
 FIGS = ("psnr_mid", "psnr_seq", "ssim_mid", "ssim_seq")
 
 
-def measure(weights: Path, valset: Path) -> dict:
+def measure(weights: Path, valset: Path, precision: str = "fp32") -> dict:
     from trmd_cli.evaluate import evaluate_dataset
 
-    rep = evaluate_dataset(valset, METHODS, n=3, weights=weights)
+    rep = evaluate_dataset(valset, METHODS, n=3, weights=weights, precision=precision)
     out = {m.method: {k: round(m.mean(k), 3) for k in FIGS} for m in rep.methods
            if not m.skipped}
     out["frames"] = rep.frames
@@ -37,6 +37,9 @@ def main() -> None:
     ap.add_argument("candidate", type=Path)
     ap.add_argument("--valset", type=Path, required=True)
     ap.add_argument("--dry-run", action="store_true", help="measure only, ship nothing")
+    ap.add_argument("--precision", default="fp32",
+                    help="the network's arithmetic while measuring (default fp32; `trmd` itself "
+                    "runs auto: bfloat16 on CPUs with AMX)")
     args = ap.parse_args()
     from trmd_cli.weights import load_weights, save_weights, weights_hash
 
@@ -48,7 +51,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         half = Path(d) / "half.safetensors"
         save_weights(half, model, meta=meta, half=True)  # measure what ships: fp16
-        figures = measure(half, args.valset)
+        figures = measure(half, args.valset, args.precision)
+    figures["precision"] = args.precision
     t, e = figures["trmd"], figures["edi-true-c"]
     figures["margin_over_edi_true_c_db"] = {"mid": round(t["psnr_mid"] - e["psnr_mid"], 3),
                                             "seq": round(t["psnr_seq"] - e["psnr_seq"], 3)}
