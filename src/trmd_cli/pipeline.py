@@ -25,6 +25,7 @@ import numpy as np
 from .edi import EdiEvents, check_blurry, hot_pixel_mask, propagate
 from .errors import InputError
 from .events import EventStream, Exposure
+from .precision import PRECISIONS
 from .read.base import ReadOptions
 from .read.folders import FrameEntry, FrameSource, FrameWindow
 from .threshold import search_contrast
@@ -93,8 +94,6 @@ class MethodConfig:
         if self.contrast is not None and not (np.isfinite(self.contrast) and self.contrast > 0):
             raise InputError(f"--contrast must be a positive number or 'auto', got "
                              f"{self.contrast}")
-        from .precision import PRECISIONS
-
         if self.precision not in PRECISIONS:
             raise InputError(f"unknown precision {self.precision!r}",
                              hint="use --precision " + ", ".join(PRECISIONS))

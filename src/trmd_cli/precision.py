@@ -15,7 +15,8 @@ from .errors import InputError
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["PRECISIONS", "autocast", "cpu_has_native_bf16", "resolve_precision"]
+__all__ = ["PRECISIONS", "autocast", "cpu_has_native_bf16", "precision_name",
+           "resolve_precision"]
 
 #: Accepted names: ``auto`` = mixed where native, else float32.
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")
@@ -56,6 +57,13 @@ def resolve_precision(precision: str, device: torch.device) -> torch.dtype | Non
     if precision == "fp16" and device.type != "cuda":
         raise InputError("float16 needs a CUDA device", hint="use --precision bf16 or fp32")
     return torch.bfloat16 if precision == "bf16" else torch.float16
+
+
+def precision_name(dtype: torch.dtype | None) -> str:
+    """``fp32`` for None (no autocast), else ``bf16`` / ``fp16``: what ran, for logs and meta."""
+    import torch
+
+    return {None: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}[dtype]
 
 
 def autocast(device: torch.device, dtype: torch.dtype | None):

@@ -42,7 +42,7 @@ class _RichReporter:
         resumed = info.get("resumed_at")
         err.print(f"[bold]train[/] {info['recipe']} → {info['run_dir']}  model {info['model']}, "
                   f"{info['world']} process(es) on {info['device']} × {info['threads']} "
-                  f"thread(s), {info.get('precision', 'float32')}"
+                  f"thread(s), {info.get('precision', 'fp32')}"
                   + (f", resumed at step {resumed}" if resumed is not None else ""),
                   soft_wrap=True, highlight=False, markup=True)
         err.print(f"  data: {'; '.join(info['train'])} ({info['batches_per_epoch']} batches "

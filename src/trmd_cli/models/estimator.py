@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError, ShapeError
-from ..precision import autocast, resolve_precision
+from ..precision import autocast, precision_name, resolve_precision
 from ..reconstruct import reconstruct
 from ..weights import load_weights, resolve_device, weights_hash
 from .renet import RENet
@@ -93,7 +93,7 @@ class TrmdEstimator:
     @property
     def precision(self) -> str:
         """The network's arithmetic as run: ``fp32``, or ``bf16`` / ``fp16`` mixed precision."""
-        return {None: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}[self.amp_dtype]
+        return precision_name(self.amp_dtype)
 
     @property
     def weights_hash(self) -> str | None:

@@ -468,9 +468,8 @@ class RENet(nn.Module):
     def _unet_layouts(self, old: dict[str, int]) -> dict[str, tuple[list, list]]:
         """Per U-Net module: (output, input) channel layouts as [(old, new) …] segments —
         concatenated inputs have one segment per part — for widths ``old`` → this network's."""
-        own = {"w0": self.args["widths"][0], "w1": self.args["widths"][1],
-               "w2": self.args["widths"][2], "w3": self.args["widths"][3],
-               "hs": self._head_skip, "rw": self.args.get("refine_width", self._head_skip)}
+        own = dict(zip(("w0", "w1", "w2", "w3"), self.args["widths"]),
+                   hs=self._head_skip, rw=self.args.get("refine_width", self._head_skip))
         seg = {k: (old[k], own[k]) for k in own}
         fw = self.args["feat_width"]
         feat = (fw, fw)
@@ -501,12 +500,11 @@ class RENet(nn.Module):
         output channels keep their random initialisation, so they carry signal that the zero
         weights learn from. Returns the state and the names widened ([] when none)."""
         own = self.state_dict()
-        probe = state.get("down1.0.weight")
-        if probe is None or probe.shape[0] == own["down1.0.weight"].shape[0]:
+        if "down1.0.weight" not in state or \
+                state["down1.0.weight"].shape[0] == own["down1.0.weight"].shape[0]:
             return state, []
-        old = {"w0": state["down1.0.weight"].shape[0], "w1": state["down2.0.weight"].shape[0],
-               "w2": state["down3.0.weight"].shape[0], "w3": state["down4.0.weight"].shape[0],
-               "hs": state["up4.0.weight"].shape[1]}
+        old = {f"w{i}": state[f"down{i + 1}.0.weight"].shape[0] for i in range(_DOWNS)}
+        old["hs"] = state["up4.0.weight"].shape[1]
         old["rw"] = state["refine.0.0.weight"].shape[0] if "refine.0.0.weight" in state \
             else old["hs"]
 
@@ -527,10 +525,8 @@ class RENet(nn.Module):
             oi, ii = old_index(outs), old_index(ins)
             for name in [k for k in own if k.rsplit(".", 1)[0] == module]:
                 if name not in state or state[name].shape == own[name].shape:
-                    continue
+                    continue  # unchanged, or a scalar (BatchNorm's step count)
                 src, dst = state[name], own[name].clone()
-                if name.endswith("num_batches_tracked"):
-                    continue
                 if dst.ndim == 1:
                     dst[oi] = src.to(dst.dtype)
                 else:

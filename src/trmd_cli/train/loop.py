@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError, OutputExistsError, TrmdError, WeightsError
-from ..precision import autocast, resolve_precision
+from ..precision import autocast, precision_name, resolve_precision
 from . import ddp
 from .checkpoint import load_checkpoint, read_checkpoint_state, save_checkpoint
 from .data import DataPlan, EpochSampler, build_data, set_epoch
@@ -499,8 +499,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
         "run_dir": str(run_dir), "recipe": r.name, "model": r.model.name,
         "train": plan.sources, "validation": plan.val_source, "batches_per_epoch": bpe,
         "world": dist.world, "device": str(dist.device), "threads": torch.get_num_threads(),
-        "precision": {None: "float32", torch.bfloat16: "bfloat16 (mixed)",
-                      torch.float16: "float16 (mixed)"}[amp_dtype],
+        "precision": precision_name(amp_dtype),
         "resumed_at": step if resumed is not None else None})
     for note in notes:
         reporter.note(note)
