@@ -126,6 +126,7 @@ class Method(Protocol):
     name: str
     n: int
     weights_hash: str | None
+    precision: str | None  # the network's arithmetic as run; None for weight-free methods
 
     def __call__(self, blurry: np.ndarray, events: EventStream, exposure: Exposure,
                  instants_us: np.ndarray | None = None) -> Estimate: ...
@@ -136,6 +137,7 @@ class EdiMethod:
 
     name = "edi"
     weights_hash = None
+    precision = None
 
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
                  hot_pixels: bool = True) -> None:

@@ -171,7 +171,7 @@ def deblur(
             "method": est.name,
             "n": est.n,
             "weights_hash": est.weights_hash,
-            "precision": getattr(est, "precision", None),
+            "precision": est.precision,
             "inputs": ins.paths,
             "time_offset_us": offset,
             "contrast_mode": "given" if config.contrast is not None else "auto",

@@ -150,7 +150,7 @@ def hfr(
                     write_json(tmp / "meta.json", {
                         "tool": f"trmd {__version__}", "method": est.name, "n": est.n,
                         "weights_hash": est.weights_hash, "inputs": ins.paths,
-                        "precision": getattr(est, "precision", None),
+                        "precision": est.precision,
                         "per_exposure": per_exposure or 2 * est.n + 1, "fps": fps,
                         "fill_gaps": fill_gaps, "time_offset_us": offset,
                         "contrast": contrasts, "frames": count})

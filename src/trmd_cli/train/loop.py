@@ -373,8 +373,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
     # mixed precision where the hardware runs it natively: float16 on CUDA (with loss
     # scaling), bfloat16 on CPUs with AMX / AVX512-BF16 (same range as float32: no scaling)
     amp_dtype = resolve_precision("auto" if tr.amp else "fp32", dist.device)
-    use_scaler = amp_dtype == torch.float16
-    scaler = torch.amp.GradScaler("cuda") if use_scaler else None
+    scaler = torch.amp.GradScaler("cuda") if amp_dtype == torch.float16 else None
     # validation stays in float32 on CPU so figures compare across runs and machines
     val_dtype = amp_dtype if dist.device.type == "cuda" else None
 
@@ -395,6 +394,7 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
     elif init_weights is not None:
         grown = _load_init(model, init_weights, r)
         timing_in = getattr(model, "TIMING_INPUTS", ())
+        # the feature extractors' first convs: the head also grows with a wider U-Net
         timed = [k for k in grown if k in timing_in[:2]]
         # a wider U-Net lists all its layers as grown (down1 is never grown otherwise)
         wider = "down1.0.weight" in grown
