@@ -5,6 +5,7 @@ Usage::
     python bench/bench_renet.py                      # all registered variants, 2 threads
     python bench/bench_renet.py --variants trmd_small --repeats 10 --threads 2
     python bench/bench_renet.py --precisions fp32 bf16   # bf16: mixed precision (autocast)
+    python bench/bench_renet.py --layouts contiguous channels_last   # weight memory layouts
 
 Per variant: parameters, MACs (count_macs, at the padded 352×272 grid), median and minimum
 wall time of one forward pass of the network alone (torch.inference_mode, after warm-up), and
@@ -71,6 +72,9 @@ def main() -> None:
                     help="variant for the end-to-end run (default: the shipped one)")
     ap.add_argument("--precisions", nargs="*", default=None,
                     help="fp32 / bf16 (default: fp32, and bf16 where the CPU has it natively)")
+    ap.add_argument("--layouts", nargs="*", default=["channels_last"],
+                    choices=["channels_last", "contiguous"],
+                    help="weight memory layouts to time (the estimator uses channels_last)")
     ap.add_argument("--args", default="{}",
                     help="JSON constructor overrides for the variants, e.g. "
                     "'{\"widths\": [48, 96, 192, 384]}'")
@@ -83,27 +87,31 @@ def main() -> None:
     over = json.loads(args.args)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {w}x{h}, N={n}, "
           f"native bfloat16: {cpu_has_native_bf16()}")
-    print(f"{'variant':12s} {'prec':>5s} {'params':>9s} {'GMACs':>7s} {'median ms':>10s} "
-          f"{'min ms':>8s} {'CPU ms':>8s}")
+    print(f"{'variant':12s} {'prec':>5s} {'layout':>8s} {'params':>9s} {'GMACs':>7s} "
+          f"{'median ms':>10s} {'min ms':>8s} {'CPU ms':>8s}")
     g = torch.Generator().manual_seed(0)
     blurry = torch.rand(1, 1, h, w, generator=g)
     voxels = torch.randn(1, 4 * n, h, w, generator=g)  # counts, then levels (timing nets)
     cpu_dev = torch.device("cpu")
     for name in names:
-        model = create_model(name, n=n, **over).eval()
-        v = voxels if model.timing else voxels[:, :2 * n]
-        for prec in precisions:
-            dtype = resolve_precision(prec, cpu_dev)
+        for layout in args.layouts:
+            model = create_model(name, n=n, **over).eval()
+            if layout == "channels_last":  # how TrmdEstimator holds the weights
+                model = model.to(memory_format=torch.channels_last)
+            v = voxels if model.timing else voxels[:, :2 * n]
+            for prec in precisions:
+                dtype = resolve_precision(prec, cpu_dev)
 
-            def run(m=model, v=v, dtype=dtype):
-                with autocast(cpu_dev, dtype):
-                    return m(blurry, v, 0.25)  # the threshold is ignored where not taken
+                def run(m=model, v=v, dtype=dtype):
+                    with autocast(cpu_dev, dtype):
+                        return m(blurry, v, 0.25)  # the threshold is ignored where not taken
 
-            with torch.inference_mode():
-                med, best, cpu = _median_time(run, args.repeats, args.warmup)
-            print(f"{name:12s} {prec:>5s} {count_params(model) / 1e6:8.2f}M "
-                  f"{count_macs(model, h, w) / 1e9:7.2f} {med * 1e3:10.1f} {best * 1e3:8.1f} "
-                  f"{cpu * 1e3:8.1f}", flush=True)
+                with torch.inference_mode():
+                    med, best, cpu = _median_time(run, args.repeats, args.warmup)
+                tag = "nhwc" if layout == "channels_last" else "nchw"
+                print(f"{name:12s} {prec:>5s} {tag:>8s} {count_params(model) / 1e6:8.2f}M "
+                      f"{count_macs(model, h, w) / 1e9:7.2f} {med * 1e3:10.1f} "
+                      f"{best * 1e3:8.1f} {cpu * 1e3:8.1f}", flush=True)
 
     exposure = Exposure(0, 20_000)
     stream = _events(w, h, 300_000, exposure)

@@ -20,6 +20,8 @@
 #            CPU with AMX), data.num_workers = 1 — v6 continued (a 3,000-step cosine, stopped
 #            at step 1,000) vs the U-Net grown 1.5x wider (widths 48–384, refinement 32; a
 #            4,000-step cosine, stopped at step 1,000 when it had not moved) (ab6/).
+#   round 6-long (session 7): both arms of round 6 resumed from their step-1,000 checkpoints
+#            with their schedules stretched to a 5,000-step cosine (ab6/).
 #   round 7: the same start and settings, a 2,000-step cosine — the four sets vs the four
 #            sets plus 6,000 samples of new content: dead-leaves images and sam2 video frames
 #            (make_extra_images.py, then make_trainset.py as below) (ab7/).
@@ -40,6 +42,13 @@ if [ "$round" = 5 ]; then
     --set 'model.name="trmd_small_edi_c_fr_t"' --out "$RUNS/ab5/timing" --overwrite \
     > "$RUNS/ab5/timing.log" 2>&1
   for name in control timing; do echo "== $name"; grep -v ',,,' "$RUNS/ab5/$name/log.csv"; done
+  exit 0
+fi
+if [ "$round" = 6-long ]; then
+  for name in wide control; do
+    trmd train --out "$RUNS/ab6/$name" --resume --set train.steps=5000 >> "$RUNS/ab6/$name.log" 2>&1
+  done
+  for name in control wide; do echo "== $name"; grep -v ',,,' "$RUNS/ab6/$name/log.csv"; done
   exit 0
 fi
 if [ "$round" = 6 ] || [ "$round" = 7 ]; then
