@@ -31,3 +31,13 @@ def pytest_configure(config):
     if os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ.setdefault("OMP_NUM_THREADS", "1")
         os.environ.setdefault("MKL_NUM_THREADS", "1")
+    # a shell starts background jobs (`cmd &` without job control, nohup) with SIGINT ignored;
+    # Python then keeps it ignored, in this process and in every command it starts, and the
+    # Ctrl-C tests would test nothing. Restore Python's handler: children then get the default.
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        try:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+        except ValueError:  # not the main thread: leave it
+            pass
