@@ -38,7 +38,7 @@ class TrmdEstimator:
 
     def __init__(self, model: RENet, meta: dict[str, Any] | None = None,
                  weights_hash: str | None = None, precision: str = "fp32") -> None:
-        # channels-last weights: oneDNN's convolutions skip a layout conversion per layer, 10–15 %
+        # channels-last weights: oneDNN's convolutions skip a layout conversion per layer, 15–20 %
         # faster in float32 on CPU (bench/bench_renet.py); the inputs stay as they are
         self.model = model.eval().to(memory_format=torch.channels_last)
         self._meta = dict(meta or {})
