@@ -13,7 +13,7 @@ import argparse
 
 import numpy as np
 
-from trmd_cli.evaluate import open_dataset
+from trmd_cli.evaluate import PSNR_CAP_DB, open_dataset
 from trmd_cli.metrics import psnr
 from trmd_cli.pipeline import EdiMethod, TrmdMethod
 
@@ -38,7 +38,8 @@ def main() -> None:
                                                                   fr.exposure).frames,
                 "trmd": trmd(fr.blurry, fr.events, fr.exposure).frames}
         for name, frames in outs.items():
-            frame_psnr[name].append([psnr(np.clip(frames[k], 0, 1), truth[k]) for k in range(m)])
+            frame_psnr[name].append([min(psnr(np.clip(frames[k], 0, 1), truth[k]), PSNR_CAP_DB)
+                                     for k in range(m)])
             res_err[name] += [np.square((frames[k] - frames[n]) - (truth[k] - truth[n])).sum()
                               for k in range(m)]
         pixels += truth[0].size
