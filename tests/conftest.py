@@ -5,23 +5,28 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-#: real recordings and images beside the repo (never copied into it)
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-
-needs_shared = pytest.mark.skipif(not SHARED.exists(), reason="../shared/data is absent")
-
 
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
 
 
-def random_stream(rng, n=5000, width=40, height=30, t_max=100_000):
-    from trmd_cli.events import make_stream
+@pytest.fixture(scope="module")
+def gopro(tmp_path_factory) -> Path:
+    """A 12-sample GOPRO-layout training set (``tests.helpers.training.make_gopro_h5``)."""
+    from tests.helpers.training import make_gopro_h5
 
-    t = np.sort(rng.integers(0, t_max, n))
-    return make_stream(rng.integers(0, width, n), rng.integers(0, height, n), t,
-                       rng.integers(0, 2, n), width, height)
+    return make_gopro_h5(tmp_path_factory.mktemp("data") / "g.h5", k=12)
+
+
+@pytest.fixture
+def no_shipped_weights(monkeypatch) -> None:
+    """Run as an installation without shipped weights would: the default weights file is
+    looked for under a name that does not exist."""
+    from trmd_cli import weights
+
+    monkeypatch.setattr(weights, "DEFAULT_WEIGHTS", "absent.safetensors")
+    assert not weights.default_weights_path().is_file()
 
 
 def pytest_configure(config):

@@ -186,10 +186,9 @@ def test_hot_pixel_is_found_and_ignored(rng):
 
 
 def test_edi_with_the_true_threshold_sharpens_a_simulated_frame():
+    from tests.helpers.data import SHARED
     from trmd_cli.read.frames import read_image
     from trmd_cli.simulate import SensorConfig, make_sample
-
-    from .conftest import SHARED
 
     path = SHARED / "images" / "skimage" / "camera.png"
     if path.exists():

@@ -208,7 +208,7 @@ def _valid_files(folder: Path) -> dict[str, Path]:
     import h5py
     import scipy.io as sio
 
-    from .test_bad_input import dat_bytes, evt2_bytes, good
+    from tests.helpers.camera import dat_bytes, evt2_bytes, good
 
     rng = np.random.default_rng(3)
     s = make_stream(rng.integers(0, 64, 40), rng.integers(0, 48, 40),

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.helpers.data import SHARED
 from trmd_cli.edi import EdiBins, EdiEvents
 from trmd_cli.events import Exposure, make_stream
 from trmd_cli.threshold import (
@@ -15,8 +16,6 @@ from trmd_cli.threshold import (
     search_contrast,
 )
 from trmd_cli.voxel import event_bins
-
-from .conftest import SHARED
 
 IMAGES = ["skimage/camera.png", "skimage/coffee.png", "skimage/astronaut.png",
           "skimage/brick.png", "wikimedia/013.png", "wikimedia/039.png"]

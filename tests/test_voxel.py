@@ -7,6 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.helpers.data import random_stream
 from trmd_cli.errors import InputError
 from trmd_cli.events import Exposure, make_stream
 from trmd_cli.voxel import (
@@ -16,8 +17,6 @@ from trmd_cli.voxel import (
     scer_voxels_torch,
     voxel_instants,
 )
-
-from .conftest import random_stream
 
 
 def _one_pixel(times, pols, width=2, height=1):

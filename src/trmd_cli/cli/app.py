@@ -45,14 +45,9 @@ def _root(
     state["verbose"] = verbose
 
 
+# a command module that fails to import is a broken installation: let it fail loudly
 for _name in COMMANDS:
-    try:
-        _module = importlib.import_module(f"{__package__}.{_name}")
-    except ModuleNotFoundError as _e:  # a command not built yet
-        if _e.name != f"{__package__}.{_name}":
-            raise
-        continue
-    _module.register(app)
+    importlib.import_module(f"{__package__}.{_name}").register(app)
 
 
 def main() -> None:

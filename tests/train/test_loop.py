@@ -3,7 +3,6 @@ outputs, and trains without ground truth when the recipe says so."""
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import numpy as np
@@ -11,31 +10,13 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from tests.helpers.training import make_gopro_h5, read_log, recipe, write_trmd_h5
 from trmd_cli.errors import InputError, OutputExistsError, WeightsError
 from trmd_cli.metrics import psnr
 from trmd_cli.train.data import build_data
 from trmd_cli.train.loop import LOG_COLUMNS, evaluate, lr_at, train
-from trmd_cli.train.recipe import Recipe, apply_overrides
+from trmd_cli.train.recipe import apply_overrides
 from trmd_cli.weights import load_weights
-
-from .test_train_data import make_gopro_h5, write_trmd_h5
-
-
-def recipe(*overrides: str) -> Recipe:
-    base = ["model.name='test_trmd'", "data.crop=32", "data.batch_size=4", "train.threads=1",
-            "data.val_fraction=0.25", "optim.lr=3e-3", "optim.warmup_steps=5",
-            "train.log_every=5", "train.checkpoint_minutes=0"]
-    return apply_overrides(Recipe(), base + list(overrides))
-
-
-@pytest.fixture(scope="module")
-def gopro(tmp_path_factory) -> Path:
-    return make_gopro_h5(tmp_path_factory.mktemp("data") / "g.h5", k=12)
-
-
-def read_log(path: Path) -> list[dict]:
-    with open(path) as fh:
-        return list(csv.DictReader(fh))
 
 
 def model_tensors(run: Path) -> dict[str, torch.Tensor]:

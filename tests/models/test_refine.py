@@ -8,30 +8,14 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from tests.helpers.training import make_gopro_h5, recipe
+from tests.helpers.training import net_inputs as _inputs
+from tests.helpers.training import trained_like as _trained_like
 from trmd_cli.errors import InputError
 from trmd_cli.models import count_macs, create_model
 from trmd_cli.train.loop import train
 from trmd_cli.train.recipe import apply_overrides
 from trmd_cli.weights import load_weights, save_weights
-
-from .test_train_data import make_gopro_h5
-from .test_train_loop import recipe
-
-
-def _inputs(seed: int = 5, b: int = 2, h: int = 21, w: int = 30):
-    g = torch.Generator().manual_seed(seed)
-    return (torch.rand(b, 1, h, w, generator=g),
-            torch.randint(-4, 5, (b, 6, h, w), generator=g).float())
-
-
-def _trained_like(name: str = "test_trmd", **kw) -> torch.nn.Module:
-    """A network whose weights are far from their initialisation (as after training)."""
-    torch.manual_seed(1)
-    net = create_model(name, **kw)
-    with torch.no_grad():
-        for p in net.parameters():
-            p.add_(0.2 * torch.randn_like(p))
-    return net.eval()
 
 
 @pytest.mark.parametrize("prior", ["none", "edi_c"])

@@ -17,7 +17,6 @@ from trmd_cli.models import create_model
 from trmd_cli.models.estimator import TrmdEstimator
 from trmd_cli.reconstruct import reconstruct
 from trmd_cli.weights import (
-    default_weights_path,
     load_weights,
     read_metadata,
     save_weights,
@@ -136,9 +135,7 @@ def test_missing_file(tmp_path):
         load_weights(tmp_path / "nope.safetensors")
 
 
-def test_no_shipped_weights_message():
-    if default_weights_path().is_file():
-        pytest.skip("shipped weights are installed")
+def test_no_shipped_weights_message(no_shipped_weights):
     with pytest.raises(WeightsError, match="no shipped .*--weights"):
         load_weights(None)
 

@@ -9,13 +9,12 @@ import pytest
 import torch
 
 import trmd_cli.precision as precision
+from tests.helpers.training import read_log, recipe
 from trmd_cli.errors import InputError
 from trmd_cli.models import create_model
 from trmd_cli.models.estimator import TrmdEstimator
 from trmd_cli.precision import resolve_precision
 from trmd_cli.train.loop import train
-
-from .test_train_loop import gopro, read_log, recipe  # noqa: F401 — the fixture is used
 
 CPU = torch.device("cpu")
 

@@ -14,14 +14,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from tests.helpers.data import SHARED, needs_shared
 from trmd_cli.errors import FormatError, InputError
 from trmd_cli.events import Exposure, make_stream
 from trmd_cli.read import ReadOptions, detect_format, open_events
 from trmd_cli.read import chunked as chunked_mod
 from trmd_cli.read.base import MemoryRecording
 from trmd_cli.read.prophesee import DatRecording, Evt2Recording, Evt3Recording, parse_header
-
-from .conftest import SHARED, needs_shared
 
 REC = SHARED / "recordings"
 ESL = SHARED / "real" / "esl-cups"

@@ -9,12 +9,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from tests.helpers.data import SHARED, needs_shared
 from trmd_cli.cli.app import app
 from trmd_cli.events import EventStream, Exposure
 from trmd_cli.read.frames import read_image
 from trmd_cli.write import write_events_npz, write_h5, write_image
-
-from .conftest import SHARED, needs_shared
 
 runner = CliRunner()
 W, H = 128, 96

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.helpers.data import SHARED, needs_shared
 from trmd_cli.errors import InputError
 from trmd_cli.events import Exposure
 from trmd_cli.read import ReadOptions, open_events
@@ -21,8 +22,6 @@ from trmd_cli.read.folders import (
     pair_folders,
     read_exposure_file,
 )
-
-from .conftest import SHARED, needs_shared
 
 W, H = 24, 16
 

@@ -22,12 +22,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from tests.helpers.procs import PREVIOUS, finish, temps, wait_until
+from tests.helpers.procs import launch as _launch
 from trmd_cli.cli.app import app
 from trmd_cli.events import Exposure, make_stream
 from trmd_cli.write import H5Writer
-
-from ._procs import PREVIOUS, finish, temps, wait_until
-from ._procs import launch as _launch
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="signals and /proc as on Linux")

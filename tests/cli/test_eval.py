@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from tests.helpers.data import SHARED, needs_shared, texture
 from trmd_cli.cli.app import app
 from trmd_cli.errors import InputError
 from trmd_cli.evaluate import (
@@ -27,9 +28,6 @@ from trmd_cli.events import make_stream
 from trmd_cli.simulate import MotionRanges, SensorConfig, make_sequence
 from trmd_cli.voxel import scer_from_bins, scer_voxels
 from trmd_cli.write import H5Writer, write_events_npz, write_image, write_text
-
-from .conftest import SHARED, needs_shared
-from .test_simulate_sample import texture
 
 runner = CliRunner()
 N = 3
@@ -361,11 +359,7 @@ def test_cli_trmd_with_weights(gt_h5, tmp_path):
     assert 5 < s["mean"]["psnr_seq"] < 100
 
 
-def test_cli_trmd_without_weights_is_skipped_with_a_note(gt_h5):
-    from trmd_cli.weights import default_weights_path
-
-    if default_weights_path().is_file():
-        pytest.skip("this installation ships weights")
+def test_cli_trmd_without_weights_is_skipped_with_a_note(gt_h5, no_shipped_weights):
     r = run("eval", gt_h5, "--methods", "blurry,trmd", "--limit", 1)
     assert r.exit_code == 0, r.output
     assert "trmd skipped" in r.output and "--weights" in r.output

@@ -634,11 +634,7 @@ def test_output_of_the_wrong_kind(good, tmp_path):
 # -- what is accepted, and said -------------------------------------------------------------------
 
 
-def test_trmd_without_any_weights_says_how_to_get_them(good, tmp_path):
-    from trmd_cli.weights import default_weights_path
-
-    if default_weights_path().is_file():
-        pytest.skip("this installation ships weights")
+def test_trmd_without_any_weights_says_how_to_get_them(good, tmp_path, no_shipped_weights):
     for command, out in (("deblur", "o"), ("hfr", "o.mp4")):
         r = runner.invoke(app, [command, str(good.image), str(good.events), "-o",
                                 str(tmp_path / out), "--method", "trmd"])

@@ -21,11 +21,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from tests.helpers.procs import PREVIOUS, finish, launch, temps, wait_until
 from trmd_cli.cli.app import app
 from trmd_cli.events import make_stream
 from trmd_cli.write import sweep_stale_temps, write_events_npz, write_h5
-
-from ._procs import PREVIOUS, finish, launch, temps, wait_until
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="signals and /proc as on Linux")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.helpers.data import shifted, texture
 from trmd_cli.errors import InputError
 from trmd_cli.events import EventStream
 from trmd_cli.metrics import psnr
@@ -19,17 +20,6 @@ from trmd_cli.simulate.video import (
     video_blocks,
     video_exposures,
 )
-
-from .test_simulate_sample import texture
-
-
-def shifted(img: np.ndarray, dx: float) -> np.ndarray:
-    """``img`` translated right by ``dx`` px (sub-pixel, bilinear)."""
-    import cv2
-
-    m = np.array([[1, 0, dx], [0, 1, 0]], np.float32)
-    return cv2.warpAffine(img, m, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REFLECT101)
 
 
 def test_flow_interpolation_recovers_the_halfway_frame():

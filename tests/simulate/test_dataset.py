@@ -7,6 +7,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from tests.helpers.data import texture  # noqa: E402
 from trmd_cli.errors import FormatError, InputError, OutputExistsError  # noqa: E402
 from trmd_cli.simulate import MotionRanges  # noqa: E402
 from trmd_cli.simulate.dataset import (  # noqa: E402
@@ -16,8 +17,6 @@ from trmd_cli.simulate.dataset import (  # noqa: E402
     pregenerate,
 )
 from trmd_cli.voxel import scer_voxels  # noqa: E402
-
-from .test_simulate_sample import texture  # noqa: E402
 
 CROP = 48
 

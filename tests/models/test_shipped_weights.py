@@ -4,17 +4,16 @@ example (simulated, with ground truth)."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from tests.helpers.data import ROOT
 from trmd_cli.cli.app import app
 from trmd_cli.read import open_events, read_image
 from trmd_cli.weights import default_weights_path, read_metadata
 
-ROOT = Path(__file__).resolve().parents[1]
 EX = ROOT / "examples"
 
 pytestmark = pytest.mark.skipif(not default_weights_path().is_file(),

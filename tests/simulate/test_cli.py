@@ -7,11 +7,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from tests.helpers.data import shifted, texture
 from trmd_cli.cli.app import app
 from trmd_cli.write import write_image
-
-from .test_simulate_sample import texture
-from .test_simulate_video import shifted
 
 runner = CliRunner()
 

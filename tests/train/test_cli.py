@@ -17,12 +17,12 @@ import torch
 from safetensors.torch import load_file
 from typer.testing import CliRunner
 
+from tests.helpers.data import ROOT, SHARED
+from tests.helpers.training import make_gopro_h5
 from trmd_cli.cli.app import app
 from trmd_cli.train.checkpoint import read_checkpoint_state
 from trmd_cli.train.loop import train
 from trmd_cli.train.recipe import load_recipe
-
-from .test_train_data import make_gopro_h5
 
 runner = CliRunner()
 
@@ -56,7 +56,7 @@ def setup(tmp_path_factory) -> tuple[Path, Path]:
 
 def env() -> dict[str, str]:
     # one thread per process and the source tree importable from a subprocess
-    src = str(Path(__file__).resolve().parents[1] / "src")
+    src = str(ROOT / "src")
     return {**os.environ, "OMP_NUM_THREADS": "1",
             "PYTHONPATH": os.pathsep.join([src, os.environ.get("PYTHONPATH", "")])}
 
@@ -188,7 +188,6 @@ def test_two_process_ddp_run_under_torchrun(setup, tmp_path):
     assert state["last_val"]["psnr_mid"] > 20
 
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 @pytest.mark.skipif(not (SHARED / "images" / "skimage").exists(), reason="../shared/data absent")

@@ -130,10 +130,8 @@ def test_training_forward_jitters_the_true_c(monkeypatch):
 
 
 def test_training_without_a_true_threshold_says_which_c_it_used(tmp_path):
+    from tests.helpers.training import make_gopro_h5, recipe
     from trmd_cli.train.loop import train
-
-    from .test_train_data import make_gopro_h5
-    from .test_train_loop import recipe
 
     data = make_gopro_h5(tmp_path / "g.h5", k=8)  # the paper's layout: no threshold stored
     r = recipe("model.name='test_trmd'", "model.args.prior='edi_c'", "train.steps=2",

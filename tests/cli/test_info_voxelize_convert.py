@@ -10,14 +10,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from tests.helpers.data import random_stream
 from trmd_cli import __version__
 from trmd_cli.cli.app import app
 from trmd_cli.events import Exposure
 from trmd_cli.read import open_events
 from trmd_cli.voxel import scer_voxels
 from trmd_cli.write import write_events_npz
-
-from .conftest import random_stream
 
 runner = CliRunner()
 

@@ -10,6 +10,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from tests.helpers.training import make_image_folder, recipe
 from trmd_cli.events import EventStream, Exposure
 from trmd_cli.models import count_macs, create_model
 from trmd_cli.models.estimator import TrmdEstimator
@@ -18,9 +19,6 @@ from trmd_cli.train.loop import train
 from trmd_cli.train.recipe import apply_overrides
 from trmd_cli.voxel import scer_levels, scer_voxels
 from trmd_cli.weights import load_weights, save_weights
-
-from .test_train_data import make_image_folder
-from .test_train_loop import recipe
 
 
 def _one_pixel(ts, ps, width: int = 2) -> EventStream:
@@ -229,9 +227,8 @@ def test_training_grows_timing_into_a_run_without_it(tmp_path):
 
 
 def test_eval_on_binned_data_says_the_timing_inputs_get_counts(tmp_path):
+    from tests.helpers.training import make_gopro_h5
     from trmd_cli.evaluate import evaluate_dataset
-
-    from .test_train_data import make_gopro_h5
 
     weights = save_weights(tmp_path / "w.safetensors", _trained_like(timing=True), half=False)
     data = make_gopro_h5(tmp_path / "g.h5", k=2)

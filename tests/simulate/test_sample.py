@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.helpers.data import texture
 from trmd_cli.events import Exposure
 from trmd_cli.metrics import psnr
 from trmd_cli.simulate import (
@@ -18,19 +19,6 @@ from trmd_cli.simulate import (
 from trmd_cli.simulate.blur import steps_for_motion
 
 SIZE = (96, 72)
-
-
-def texture(h: int = 200, w: int = 260, seed: int = 0) -> np.ndarray:
-    """A smooth random texture in [0.05, 0.95] with edges at several scales."""
-    import cv2
-
-    rng = np.random.default_rng(seed)
-    img = np.zeros((h, w), np.float32)
-    for sigma in (1.5, 4.0, 10.0):
-        layer = cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), sigma)
-        img += (layer - layer.mean()) / (layer.std() + 1e-6)
-    img = (img - img.min()) / (img.max() - img.min())
-    return (0.05 + 0.9 * img).astype(np.float32)
 
 
 def edi(blurry: np.ndarray, events, exposure: Exposure, instants, c: float,

@@ -8,14 +8,12 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from tests.helpers.training import make_gopro_h5, recipe
 from trmd_cli.errors import InputError
 from trmd_cli.train.ema import WeightAverage
 from trmd_cli.train.loop import train
 from trmd_cli.train.recipe import apply_overrides
 from trmd_cli.weights import load_weights
-
-from .test_train_data import make_gopro_h5
-from .test_train_loop import recipe
 
 
 @pytest.fixture(scope="module")

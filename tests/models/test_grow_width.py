@@ -8,13 +8,12 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from tests.helpers.training import make_gopro_h5, recipe
+from tests.helpers.training import net_inputs as _inputs
+from tests.helpers.training import trained_like as _trained_like
 from trmd_cli.models import create_model
 from trmd_cli.train.loop import train
 from trmd_cli.train.recipe import apply_overrides
-
-from .test_refine import _inputs, _trained_like
-from .test_train_data import make_gopro_h5
-from .test_train_loop import recipe
 
 WIDE = dict(widths=(6, 12, 12, 10))
 

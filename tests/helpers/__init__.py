@@ -1,0 +1,1 @@
+"""Helpers the tests share: data makers, paths, subprocess runs."""
