@@ -2,10 +2,10 @@
 
     python weights_recipe/curve.py -o docs/images/training_curve.png
 
-Reads the stages' logs beside this script (copies of the runs' ``log.csv``: ``STAGES``); each
-stage's steps are counted on from the last one of the stage before. Stages 3–6 validate with
-the true threshold and an average of the weights; the figures in README.md use the estimated
-threshold.
+Reads the stages' logs in ``logs/`` beside this script (copies of the runs' ``log.csv``:
+``STAGES``); each stage's steps are counted on from the last one of the stage before. Stages 3–6
+validate with the true threshold and an average of the weights; the figures in README.md use the
+estimated threshold.
 """
 
 from __future__ import annotations
@@ -16,8 +16,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 #: the stages' logs in order (stage 4 was taken at step 2,000: its log ends there)
-STAGES = ("shipped-v2-stage1_log.csv", "shipped-v2_log.csv", "shipped-v3_log.csv",
-          "shipped-v4_log.csv", "shipped-v5_log.csv", "s6-timing_log.csv")
+STAGES = tuple(f"logs/stage{k}.csv" for k in range(1, 7))
 
 
 def read_log(path: Path, offset: int = 0) -> list[dict]:

@@ -1,4 +1,6 @@
-"""Source images for the extra training set (A/B round 7): new content, none of it Kodak.
+"""Source images for an extra training set of new content, none of it Kodak.
+
+Tried in an A/B run (docs/experiments.md, "new content"); not in the shipped weights.
 
 - 140 synthetic **dead-leaves** images (768×512): occluding disks with power-law radii
   (r^-3, 3–300 px, the scale-invariant choice), each flat, striped or shaded, in random colours,
@@ -70,7 +72,7 @@ def main() -> None:
     out = args.out / "wikimedia"
     out.mkdir(parents=True, exist_ok=True)
     for i in range(args.dead_leaves):
-        group, k = 1 + i // 70, i % 70  # the seeds of the images round 7 used
+        group, k = 1 + i // 70, i % 70  # the seeds of the images the A/B run used
         im = dead_leaves(np.random.default_rng(group * 100003 + k))
         cv2.imwrite(str(out / f"dl_{group}_{k:04d}.png"),
                     (im[..., ::-1] * 255 + 0.5).astype(np.uint8))

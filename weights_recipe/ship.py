@@ -1,12 +1,13 @@
 """Measure a trained candidate on the pinned validation set and ship it as the default weights.
 
-    python weights_recipe/ship.py ../runs/shipped-v1/best.safetensors \
+    python weights_recipe/ship.py ../runs/s6-timing/final.safetensors \
         --valset ../runs/valset_kodak24.h5 [--dry-run]
 
 Evaluates blurry, EDI given the true threshold, EDI with the automatic threshold and the
 candidate (fp16, exactly as shipped) on every frame of the validation set, prints the table,
 and writes ``src/trmd_cli/weights/trmd_default.safetensors`` with the figures in its metadata
-and ``weights_recipe/figures.json`` beside this script.
+and ``weights_recipe/figures.json`` beside this script. The validation file is recorded by its
+name and SHA-256 (``relabel.py``), not by the path it had on the training machine.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import argparse
 import json
 import tempfile
 from pathlib import Path
+
+from relabel import label_valset  # beside this script
 
 HERE = Path(__file__).resolve().parent
 TARGET = HERE.parent / "src" / "trmd_cli" / "weights" / "trmd_default.safetensors"
@@ -64,6 +67,7 @@ def main() -> None:
     if args.dry_run:
         return
     meta = dict(meta)
+    label_valset(meta.get("recipe"), meta.get("figures"), args.valset)
     meta["validation"] = {"set": "weights_recipe/make_valset.py (kodak24, 48 frames, 346x260)",
                           **figures}
     TARGET.parent.mkdir(exist_ok=True)
