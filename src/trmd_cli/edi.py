@@ -56,7 +56,7 @@ def check_blurry(blurry: np.ndarray, width: int, height: int, path=None) -> np.n
     if b.shape[:2] != (height, width):
         raise InputError(f"image is {b.shape[1]}x{b.shape[0]} but the events' sensor is "
                          f"{width}x{height}", path=path,
-                         hint="pass the frame that belongs to these events, or --sensor WxH")
+                         hint="pass the frame that belongs to these events, or `sensor=(W, H)`")
     b = b.astype(np.float32, copy=False)
     if not np.isfinite(b).all():
         raise InputError("blurry frame has NaN or infinite values", path=path)
@@ -301,7 +301,7 @@ def edi_latent(blurry: np.ndarray, events: EventStream, exposure: Exposure,
 def _check_contrast(contrast: float) -> None:
     if not (np.isfinite(contrast) and contrast > 0):
         raise InputError(f"contrast threshold must be a positive number, got {contrast}",
-                         hint="use --contrast auto or a value like 0.2")
+                         hint="use `contrast='auto'` or a value like 0.2")
 
 
 @dataclass(frozen=True, eq=False)

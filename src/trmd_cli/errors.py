@@ -53,7 +53,7 @@ class WeightsError(TrmdError):
 
 
 class OutputExistsError(TrmdError):
-    """The output path exists and is not empty; pass ``--overwrite`` to replace it."""
+    """The output path exists and is not empty; pass ``overwrite=True`` to replace it."""
 
 
 def check_shape(array, expected: Sequence[int | str | None], name: str = "array") -> None:

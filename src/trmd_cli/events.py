@@ -33,7 +33,7 @@ class Exposure:
         if not self.end_us > self.start_us:
             raise InputError(
                 f"exposure window [{self.start_us}, {self.end_us}] µs is empty or reversed",
-                hint="give --exposure T0 T1 with T1 > T0",
+                hint="give `exposure=(T0, T1)` with T1 > T0",
             )
 
     @property
@@ -80,7 +80,7 @@ class EventStream:
                                  hint="x, y, t and p need one entry per event")
         if self.width <= 0 or self.height <= 0:
             raise InputError(f"sensor size {self.width}x{self.height} is not positive",
-                             hint="pass --sensor WxH")
+                             hint="pass `sensor=(W, H)`")
 
     def __len__(self) -> int:
         return len(self.t)
@@ -162,7 +162,7 @@ def make_stream(
                              hint="remove or repair the broken rows")
         if len(t) and np.abs(t).max() >= _T_LIMIT_US:
             raise InputError(f"event times up to {np.abs(t).max():g} µs are out of range",
-                             path=source, hint="check --time-unit")
+                             path=source, hint="check `time_unit`")
         t = np.rint(t).astype(np.int64)
     elif t.dtype.kind in "iu":
         t = t.astype(np.int64, copy=False)
@@ -172,7 +172,7 @@ def make_stream(
     if len(t) and t.min() < 0:
         bad = int(np.argmin(t))
         raise InputError(f"event {bad} has a negative time ({t[bad]} µs)", path=source,
-                         hint="times must count from the start of the recording; check --time-unit")
+                         hint="times must count from the start of the recording; check `time_unit`")
     if len(t) > 1 and (np.diff(t) < 0).any():
         if not sort:
             bad = int(np.flatnonzero(np.diff(t) < 0)[0]) + 1
@@ -184,33 +184,33 @@ def make_stream(
         if arr.dtype.kind == "f":
             if len(arr) and (not np.isfinite(arr).all() or (arr != np.round(arr)).any()):
                 raise InputError(f"{name} coordinates are not whole numbers", path=source,
-                                 hint="check the column order (--columns)")
+                                 hint="check the column order (`columns`)")
         elif arr.dtype.kind not in "iub":
             raise InputError(f"{name} coordinates have type {arr.dtype}", path=source,
                              hint="store x and y as integer pixel indices")
         if len(arr) and arr.min() < 0:
             raise InputError(f"{name} coordinate {int(arr.min())} is negative", path=source,
-                             hint="if the file counts pixels from 1, pass --one-based")
+                             hint="if the file counts pixels from 1, pass `one_based=True`")
     for name, size in (("width", width), ("height", height)):
         # a size read from a file may be anything: check it before comparing coordinates to it
         if size is not None and (not np.isscalar(size) or not float(size).is_integer()
                                  or not 0 < size <= 65535):
             raise InputError(f"sensor {name} {size!r} is not a whole number in 1..65535",
-                             path=source, hint="pass --sensor WxH")
+                             path=source, hint="pass `sensor=(W, H)`")
     if width is None:
         width = int(x.max()) + 1 if len(x) else 1
     if height is None:
         height = int(y.max()) + 1 if len(y) else 1
     if len(x) and int(x.max()) >= width:
         raise InputError(f"x coordinate {int(x.max())} is outside the sensor width {width}",
-                         path=source, hint="check --sensor WxH or the column order (--columns)")
+                         path=source, hint="check `sensor=(W, H)` or the column order (`columns`)")
     if len(y) and int(y.max()) >= height:
         raise InputError(f"y coordinate {int(y.max())} is outside the sensor height {height}",
-                         path=source, hint="check --sensor WxH or the column order (--columns)")
+                         path=source, hint="check `sensor=(W, H)` or the column order (`columns`)")
     if width > 65535 or height > 65535:
         raise InputError(f"sensor size {width}x{height} is too large (coordinates up to "
                          f"{width - 1}, {height - 1})", path=source,
-                         hint="check the column order (--columns) and --sensor WxH")
+                         hint="check the column order (`columns`) and `sensor=(W, H)`")
     if p.dtype == bool:
         p8 = np.where(p, 1, -1).astype(np.int8)
     else:
@@ -225,6 +225,6 @@ def make_stream(
         if len(pi) and ((pi != 1) & (pi != 0) & (pi != -1)).any():
             seen = np.unique(pi)[:5].tolist()
             raise InputError(f"polarity values {seen} are not in {{0, 1, -1}}",
-                             path=source, hint="check the column order (--columns)")
+                             path=source, hint="check the column order (`columns`)")
         p8 = np.where(pi > 0, 1, -1).astype(np.int8)
     return EventStream(x.astype(np.uint16), y.astype(np.uint16), t, p8, int(width), int(height))

@@ -104,7 +104,7 @@ class ContrastObjective:
         self.hb, self.wb = (h // _BLOCK) * _BLOCK, (w // _BLOCK) * _BLOCK
         if self.hb == 0 or self.wb == 0:
             raise InputError(f"a {w}x{h} frame is too small to estimate the contrast threshold "
-                             f"(needs at least {_BLOCK}x{_BLOCK})", hint="pass --contrast C")
+                             f"(needs at least {_BLOCK}x{_BLOCK})", hint="pass `contrast=C`")
         self._blocks = (self.wb // _BLOCK, self.hb // _BLOCK)  # cv2 size order: (w, h)
         # S in half steps so that the bins' mid-bin levels stay whole numbers: exp by look-up
         twice = 2.0 * model.levels_at(instants)

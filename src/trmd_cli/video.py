@@ -46,7 +46,7 @@ class VideoWriter:
     def __init__(self, path: str | Path, fps: float = 30.0, quality: int = 8) -> None:
         self.path = check_video_path(path)
         if not (np.isfinite(fps) and fps > 0):
-            raise InputError(f"--fps must be positive, got {fps}", hint="e.g. --fps 30")
+            raise InputError(f"`fps` must be positive, got {fps}", hint="e.g. `fps=30`")
         self.fps = float(fps)
         self.quality = int(quality)
         self.kind = self.path.suffix.lower()[1:]

@@ -3,7 +3,7 @@
 One pure function, :func:`resolve_windows`, decides it for every command (deblur, hfr, voxelize),
 first rule that applies:
 
-1. ``exposure=(T0, T1)`` given by the user (``--exposure``), in the file's time unit;
+1. ``exposure=(T0, T1)`` given by the user, in the file's time unit;
 2. the exposure windows of frames stored in the recording;
 3. windows stored without frames (npz ``exposure_start`` / ``exposure_end``);
 4. the span of all events, with a warning.
@@ -42,14 +42,14 @@ class WindowPlan(NamedTuple):
 
 
 def exposure_from_user(t0: float, t1: float, time_unit: str | None = None) -> Exposure:
-    """``--exposure T0 T1`` → :class:`Exposure` in µs.
+    """``exposure=(T0, T1)`` → :class:`Exposure` in µs.
 
-    ``time_unit`` is the file's unit (``--time-unit``). When None, the values follow the same
+    ``time_unit`` is the file's unit. When None, the values follow the same
     rule as files: whole numbers are µs, numbers with a fraction are seconds.
     """
     for v in (t0, t1):
         if not np.isfinite(v):
-            raise InputError(f"--exposure value {v} is not a finite number")
+            raise InputError(f"`exposure` value {v} is not a finite number")
     if time_unit is None:
         whole = float(t0).is_integer() and float(t1).is_integer()
         time_unit = "us" if whole else "s"
@@ -59,9 +59,9 @@ def exposure_from_user(t0: float, t1: float, time_unit: str | None = None) -> Ex
     scale = UNIT_SCALE_US[unit]
     start, end = (int(round(float(v) * scale)) for v in (t0, t1))
     if end <= start:
-        raise InputError(f"--exposure {t0} {t1} is empty or reversed "
-                         f"({start}..{end} µs after --time-unit {unit})",
-                         hint="give T1 > T0 in the file's time unit (see --time-unit)")
+        raise InputError(f"`exposure=({t0}, {t1})` is empty or reversed "
+                         f"({start}..{end} µs after `time_unit` {unit})",
+                         hint="give T1 > T0 in the file's time unit (see `time_unit`)")
     return Exposure(start, end)
 
 
@@ -73,7 +73,7 @@ def check_in_range(window: Exposure, time_range_us: tuple[int, int], what: str =
         raise InputError(
             f"the {what} [{window.start_us}, {window.end_us}] µs lies outside the events' time "
             f"range [{first}, {last}] µs ({first / 1e6:.6f}–{last / 1e6:.6f} s)", path=path,
-            hint="check --exposure, --time-unit and --time-offset")
+            hint="check `exposure`, `time_unit` and `offset_us`")
 
 
 def resolve_windows(
@@ -89,9 +89,9 @@ def resolve_windows(
         recording: a :class:`~trmd_cli.read.base.Recording` (only ``time_range_us``,
             ``frame_exposures``, ``stored_windows``, ``num_events`` and ``path`` are used).
         exposure: ``(T0, T1)`` in the file's time unit, or an :class:`Exposure` already in µs.
-        time_unit: the file's time unit for ``exposure`` (``--time-unit``); see
+        time_unit: the file's time unit for ``exposure``; see
             :func:`exposure_from_user`.
-        offset_us: added to every window (``--time-offset``): moves the exposure relative to
+        offset_us: added to every window: moves the exposure relative to
             the events (real DAVIS data often needs tens of ms).
 
     Returns:
@@ -127,7 +127,7 @@ def resolve_windows(
         win = Exposure(first, max(last, first + 1))
         warnings.append(
             f"no exposure window given or stored; using the events' whole span "
-            f"[{win.start_us}, {win.end_us}] µs — pass --exposure T0 T1 to choose one")
+            f"[{win.start_us}, {win.end_us}] µs — pass `exposure=(T0, T1)` to choose one")
         return WindowPlan([win.shifted(offset_us) if offset_us else win], warnings, "span")
 
     if offset_us:

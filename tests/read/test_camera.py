@@ -176,7 +176,7 @@ def test_evt2_sensor_size_rules(tmp_path):
     assert open_events(f).sensor_size() == (640, 480)
     write_evt2(f, t, x, y, p, header=b"% evt 2.0\n")
     rec = open_events(f)
-    assert rec.sensor_size() == (10, 5) and any("--sensor" in w for w in rec.warnings)
+    assert rec.sensor_size() == (10, 5) and any("`sensor" in w for w in rec.warnings)
     assert open_events(f, ReadOptions(sensor=(32, 16))).sensor_size() == (32, 16)
     write_evt2(f, t, x, y, p, header=b"% plugin_name hal_plugin_gen3_fx3\n")
     assert detect_format(f) == "evt2"  # Gen3 headers that do not name the encoding

@@ -7,6 +7,7 @@ import pickle
 import h5py
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
 from tests.helpers.data import random_stream
 from trmd_cli.errors import FormatError, InputError
@@ -241,3 +242,45 @@ def test_make_stream_never_mutates(rng):
     assert s.t.tolist() == [1, 5] and s.x.tolist() == [1, 3]
     for a, c in zip((x, y, t, p), copies):
         np.testing.assert_array_equal(a, c)
+
+
+# -- the time unit comes from the whole column ------------------------------------------------
+
+
+def _esl_text(tmp_path, n=3000):
+    """eSL-Net's layout: seconds normalised to the exposure, the first written as a bare 0."""
+    rng = np.random.default_rng(3)
+    t = np.sort(rng.random(n) * 0.1)
+    t[0] = 0.0
+    rows = ["0 10 20 1"] + [f"{ti:.11f} {rng.integers(0, 240)} {rng.integers(0, 180)} "
+                            f"{rng.integers(0, 2)}" for ti in t[1:]]
+    f = tmp_path / "events.txt"
+    f.write_text("\n".join(rows) + "\n")
+    return f, t
+
+
+def test_fractional_times_after_an_integer_first_row_are_seconds(tmp_path):
+    from trmd_cli.read import ReadOptions, open_events
+
+    f, t = _esl_text(tmp_path)
+    with open_events(f, ReadOptions(sensor=(240, 180))) as rec:
+        s = rec.events()
+        assert not any("distinct times" in w for w in rec.warnings)
+    # every time to the microsecond, none truncated onto 0 or 1 µs
+    np.testing.assert_array_equal(s.t, np.rint(t * 1e6).astype(np.int64))
+    assert len(np.unique(s.t)) > 2000
+
+
+def test_times_that_collapse_are_reported_with_the_unit_to_set(tmp_path):
+    from trmd_cli.cli.app import app
+    from trmd_cli.read import ReadOptions, open_events
+
+    f, _ = _esl_text(tmp_path)
+    # read as integer microseconds on purpose: 3000 events on a handful of instants
+    with open_events(f, ReadOptions(sensor=(240, 180), time_unit="us")) as rec:
+        assert len(np.unique(rec.events().t)) < 16
+        line = next(w for w in rec.warnings if "distinct times" in w)
+        assert "`time_unit`" in line
+    r = CliRunner().invoke(app, ["info", str(f), "--sensor", "240x180", "--time-unit", "us"])
+    assert r.exit_code == 0, r.output
+    assert "distinct times" in r.stderr and "set --time-unit" in r.stderr

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import os
+import re
 import signal
 import sys
 import threading
@@ -36,8 +37,65 @@ err = Console(stderr=True, highlight=False)
 state = {"verbose": False}
 
 
+#: the library's parameter names → this CLI's flags. Library messages name parameters in
+#: backticks (``pass `sensor=(W, H)` ``) so that Python users read about arguments; the CLI says
+#: the flag. A (on, off) pair is for booleans.
+FLAGS: dict[str, str | tuple[str, str]] = {
+    "bit_depth": "--bit-depth",
+    "columns": "--columns",
+    "contrast": "--contrast",
+    "device": "--device",
+    "exposure": "--exposure",
+    "exposure_us": "--exposure-ms",
+    "fill_gaps": ("--fill-gaps", "--no-fill-gaps"),
+    "fps": "--fps",
+    "frames": "--frames",
+    "hot_pixels": ("--hot-pixels", "--keep-hot-pixels"),
+    "interval_us": "--frame-interval-ms",
+    "max_gap_frames": "--max-gap-frames",
+    "method": "--method",
+    "methods": "--methods",
+    "n": "--n",
+    "offset_us": "--time-offset",
+    "one_based": ("--one-based", "--one-based"),
+    "overwrite": ("--overwrite", "--overwrite"),
+    "per_exposure": "--per-exposure",
+    "precision": "--precision",
+    "sensor": "--sensor",
+    "threads": "--threads",
+    "time_unit": "--time-unit",
+    "times_us": "--timestamps",
+    "weights": "--weights",
+}
+
+_PARAM = re.compile(r"`([a-z_][a-z0-9_]*)(?:=([^`]*))?`")
+
+
+def as_flags(text: str) -> str:
+    """A library message with its backticked parameters (`` `n=3` ``, `` `sensor=(W, H)` ``,
+    `` `one_based=True` ``) spelled as this CLI's flags (``--n 3``, ``--sensor WxH``,
+    ``--one-based``). Backticked text that names no parameter (`` `trmd train` ``) is kept."""
+
+    def flag(m: re.Match) -> str:
+        name, value = m.group(1), m.group(2)
+        spelled = FLAGS.get(name)
+        if spelled is None:
+            return m.group(0)
+        if isinstance(spelled, tuple):
+            return spelled[1] if value is not None and value.strip() == "False" else spelled[0]
+        if value is None:
+            return spelled
+        value = value.strip()
+        if value.startswith("(") and value.endswith(")"):
+            parts = [v.strip() for v in value[1:-1].split(",")]
+            value = "x".join(parts) if name == "sensor" else " ".join(parts)
+        return f"{spelled} {value.strip(chr(39) + chr(34))}"
+
+    return _PARAM.sub(flag, text)
+
+
 def warn(message: str) -> None:
-    err.print(f"[yellow]warning:[/] {message}", soft_wrap=True)
+    err.print(f"[yellow]warning:[/] {as_flags(message)}", soft_wrap=True)
 
 
 def fail(message: str, code: int) -> typer.Exit:
@@ -105,13 +163,14 @@ def _run(fn: Callable, args, kwargs):
     except TrmdError as e:
         if state["verbose"]:
             err.print_exception()
-        raise fail(_escape(str(e)), e.exit_code) from None
+        raise fail(_escape(as_flags(str(e))), e.exit_code) from None
     except Terminated:
         raise fail("terminated; no partial output was left", 143) from None
     except KeyboardInterrupt:
         raise fail("interrupted; no partial output was left", 130) from None
     except MemoryError:
-        raise fail("out of memory; try a smaller --tile or fewer frames at once", 1) from None
+        raise fail("out of memory; close other programs, or give the command less at once "
+                   "(trmd train: --set data.batch_size=… or data.crop=…)", 1) from None
     except Exception as e:  # noqa: BLE001 - the boundary is the place for it
         if state["verbose"]:
             err.print_exception()

@@ -107,7 +107,7 @@ class Aedat4Recording(ChunkedRecording):
         self._aedat = require("aedat", path=path)
         warnings: list[str] = []
         if options.time_unit not in (None, "us"):
-            warnings.append(f"--time-unit {options.time_unit} ignored: AEDAT 4 times are "
+            warnings.append(f"`time_unit={options.time_unit!r}` ignored: AEDAT 4 times are "
                             "microseconds by specification")
         with _native_stderr_captured() as capture:
             try:

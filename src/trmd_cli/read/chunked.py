@@ -131,13 +131,13 @@ class ChunkedRecording(Recording):
             self.width = self.width or w  # type: ignore[assignment]
             self.height = self.height or h  # type: ignore[assignment]
             self.warnings.append(f"the file stores no sensor size; using {self.width}x"
-                                 f"{self.height} from the largest coordinates (pass --sensor "
-                                 "WxH to set it)")
+                                 f"{self.height} from the largest coordinates (pass "
+                                 "`sensor=(W, H)` to set it)")
         if xmax >= self.width or ymax >= self.height:
             axis, value = ("x", xmax) if xmax >= self.width else ("y", ymax)
             raise FormatError(f"{axis} coordinate {value} is outside the {self.width}x"
                               f"{self.height} sensor (corrupt file, or wrong sensor size?)",
-                              path=self.path, hint="check --sensor WxH")
+                              path=self.path, hint="check `sensor=(W, H)`")
 
     def _join(self, chunks: Sequence[Chunk]) -> EventStream:
         if not chunks:

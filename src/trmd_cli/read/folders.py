@@ -7,7 +7,7 @@ stays bounded by one window whatever the length of the sequence. Three layouts:
 * **a folder of frames + one event file** (EVDI style): images ``*.png|jpg|tif`` ordered by the
   number in their names, exposure times in ``Exposure_start.txt`` / ``Exposure_end.txt`` (in the
   image folder or its parent), one number per line, line i for the i-th image. Unit: the file's
-  time unit — ``--time-unit`` if given, else whole numbers are **microseconds** (EVDI writes
+  time unit — ``time_unit`` if given, else whole numbers are **microseconds** (EVDI writes
   integer µs since the Unix epoch) and numbers with a fraction are seconds. ``time_offset_us``
   moves these times onto the event camera's clock (frames from a second camera, e.g. with a
   Prophesee sensor that records no frames). Without exposure files, windows stored in the event
@@ -197,7 +197,7 @@ def _exposures_from_files(files: tuple[Path, Path], count: int, unit: str | None
         i = int(bad[0])
         raise InputError(f"line {i + 1}: exposure end {end[i]} µs is not after start "
                          f"{start[i]} µs", path=files[1],
-                         hint="check the two files are not swapped, and --time-unit")
+                         hint="check the two files are not swapped, and `time_unit`")
     return [Exposure(int(a) + offset_us, int(b) + offset_us)
             for a, b in zip(start, end, strict=True)]
 
@@ -307,7 +307,7 @@ def frames_from_recording(recording: Recording) -> FrameSource:
     if not exposures:
         raise InputError("the file stores no frames with exposure times", path=recording.path,
                          hint="give the frames as a folder (with Exposure_start.txt / "
-                              "Exposure_end.txt) or pass --exposure T0 T1")
+                              "Exposure_end.txt) or pass `exposure=(T0, T1)`")
     entries = [FrameEntry(k, f"{k:06d}", e) for k, e in enumerate(exposures)]
     return FrameSource(entries, recording.width, recording.height, recording=recording,
                        stored_frames=True, warnings=list(recording.warnings))
@@ -406,7 +406,7 @@ def open_frame_folder(
                     + (f" (the event file stores {len(stored)} windows)" if stored else ""),
                     path=images,
                     hint="add Exposure_start.txt and Exposure_end.txt (one time per line, µs) "
-                         "beside the images, or pass --exposure T0 T1 for a single frame")
+                         "beside the images, or pass `exposure=(T0, T1)` for a single frame")
             windows = list(stored)
         _warn_outside(windows, recording.time_range_us(), warnings)
         entries = [FrameEntry(frame_number(p) if frame_number(p) is not None else i, p.stem, w, p)
@@ -452,5 +452,5 @@ def _warn_outside(windows: Sequence[Exposure], trange: tuple[int, int],
     outside = sum(w.end_us < first or w.start_us > last for w in windows)
     if outside:
         warnings.append(f"{outside} of {len(windows)} exposure windows lie outside the events' "
-                        f"time range [{first}, {last}] µs: check --time-unit and the time "
+                        f"time range [{first}, {last}] µs: check `time_unit` and the time "
                         "offset between the cameras")

@@ -72,4 +72,4 @@ def check_frame_matches(image: np.ndarray, width: int, height: int, path) -> Non
     if image.shape[:2] != (height, width):
         raise InputError(
             f"image is {image.shape[1]}x{image.shape[0]} but the events' sensor is "
-            f"{width}x{height}", path=path, hint="pass the matching frame, or --sensor WxH")
+            f"{width}x{height}", path=path, hint="pass the matching frame, or `sensor=(W, H)`")

@@ -125,10 +125,10 @@ class HDF5Recording(Recording):
                 height, width = f["frames/blurry"].shape[1:3]
         except (TypeError, ValueError, IndexError):
             raise FormatError("the stored sensor size is not two whole numbers", path=path,
-                              hint="pass --sensor WxH") from None
+                              hint="pass `sensor=(W, H)`") from None
         if width is not None and not (0 < width <= 65535 and 0 < height <= 65535):
             raise FormatError(f"the stored sensor size {width}x{height} is impossible", path=path,
-                              hint="pass --sensor WxH")
+                              hint="pass `sensor=(W, H)`")
         if width is None:
             # a size must be fixed now for lazy windows to agree: one pass over x and y
             try:
@@ -137,7 +137,7 @@ class HDF5Recording(Recording):
             except _H5_ERRORS as e:
                     raise self._read_error(e) from None
             self.warnings.append("the file stores no sensor size: using max+1 of the "
-                                 "coordinates (pass --sensor WxH to set it)")
+                                 "coordinates (pass `sensor=(W, H)` to set it)")
         self.width, self.height = int(width), int(height)
         try:
             coarse = self._times(self._t[::STRIDE]) if n else np.zeros(0, np.int64)
@@ -146,7 +146,7 @@ class HDF5Recording(Recording):
         if len(coarse) and coarse.min() < 0:
             raise InputError(f"event times are negative ({int(coarse.min())} µs)", path=path,
                              hint="times must count from the start of the recording; check "
-                                  "--time-unit and t_offset")
+                                  "`time_unit` and t_offset")
         if len(coarse) > 1 and (np.diff(coarse) < 0).any():
             raise InputError("event times are not sorted", path=path,
                              hint="sort the events by time (trmd convert sorts text/npz input)")
@@ -241,7 +241,7 @@ class HDF5Recording(Recording):
             return []
         if not self._has("frames/exposure_end"):
             raise FormatError("frames/exposure_start is stored without frames/exposure_end",
-                              path=self.path, hint="store both, or give --exposure T0 T1")
+                              path=self.path, hint="store both, or give `exposure=(T0, T1)`")
         try:
             s = np.ravel(self._f["frames/exposure_start"][...])
             e = np.ravel(self._f["frames/exposure_end"][...])
@@ -254,7 +254,7 @@ class HDF5Recording(Recording):
                     f"types {s.dtype}/{e.dtype}, expected integer µs" if not ok else
                     f"window {int(bad[0])} [{s[bad[0]]}, {e[bad[0]]}] µs is empty or reversed")
             raise FormatError(f"frames/exposure_start/end: {what}", path=self.path,
-                              hint="repair the stored windows, or give --exposure T0 T1")
+                              hint="repair the stored windows, or give `exposure=(T0, T1)`")
         return [Exposure(int(a), int(b)) for a, b in zip(s, e, strict=True)]
 
     def frames(self) -> Iterator[Frame]:
@@ -269,7 +269,7 @@ class HDF5Recording(Recording):
             if img.shape[:2] != (self.height, self.width):
                 raise InputError(f"frame {k} is {img.shape[1]}x{img.shape[0]} but the events' "
                                  f"sensor is {self.width}x{self.height}", path=self.path,
-                                 hint="store frames of the sensor size, or pass --sensor WxH")
+                                 hint="store frames of the sensor size, or pass `sensor=(W, H)`")
             yield Frame(img, exposures[k] if k < len(exposures) else None, k,
                         f"{self.path.name}#frame{k}")
 

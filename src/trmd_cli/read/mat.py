@@ -11,13 +11,13 @@ Layouts understood:
 
 Units and conventions:
 
-* time: floating-point values are seconds, integers are microseconds (``--time-unit`` overrides);
+* time: floating-point values are seconds, integers are microseconds (``time_unit`` overrides);
   converted to int64 µs and kept absolute — eSL-Net stores seconds since the Unix epoch
   (≈1.6e9 s, resolved to ~0.24 µs by float64), so events and the stored exposure window stay on
   one clock. Conversion splits off whole seconds first so no precision is lost in the product;
-* x = column, y = row, 0-based (``--one-based`` for files counting from 1), (0, 0) top-left;
+* x = column, y = row, 0-based (``one_based=True`` for files counting from 1), (0, 0) top-left;
 * polarity 1 = ON (+1), 0 or -1 = OFF (-1);
-* the file stores no sensor size: ``--sensor`` (or the paired image, see
+* the file stores no sensor size: ``sensor`` (or the paired image, see
   :mod:`trmd_cli.read.folders`) gives it; otherwise max+1 with a warning.
 
 Binned files (LEDVDI's ``event_bins``) hold no individual events and are refused with a hint.
@@ -67,7 +67,7 @@ def seconds_to_us(t: np.ndarray, unit: str | None) -> np.ndarray:
     finite = t[np.isfinite(t)] if t.dtype.kind == "f" else t
     if len(finite) and max(abs(float(finite.max())), abs(float(finite.min()))) * scale >= 2.0**62:
         raise InputError(f"times up to {max(abs(float(finite.max())), abs(float(finite.min()))):g}"
-                         f" {unit} are out of range", hint="check --time-unit")
+                         f" {unit} are out of range", hint="check `time_unit`")
     if t.dtype.kind in "iu":
         t64 = t.astype(np.int64)
         return t64 // 1000 if unit == "ns" else t64 * int(scale)
@@ -225,12 +225,12 @@ def _window(data: dict[str, np.ndarray], path: Path, unit: str | None) -> Exposu
     values = [_vector(data, k, path)[:1] for k in _WINDOW]
     if any(len(v) == 0 for v in values):
         raise FormatError("start_timestamp or end_timestamp is empty", path=path,
-                          hint="repair them, or give --exposure T0 T1")
+                          hint="repair them, or give `exposure=(T0, T1)`")
     start, end = (seconds_to_us(v, unit)[0] for v in values)
     if not end > start:
         raise FormatError(f"stored exposure window [{start}, {end}] µs is empty or reversed",
                           path=path, hint="repair start_timestamp/end_timestamp, or give "
-                                          "--exposure T0 T1")
+                                          "`exposure=(T0, T1)`")
     return Exposure(int(start), int(end))
 
 
@@ -239,7 +239,7 @@ def read_mat(path: Path, options: ReadOptions) -> MemoryRecording:
 
     Raises:
         FormatError: unreadable file, binned events, no recognised layout (lists the keys).
-        InputError: bad values (non-finite times, coordinates outside ``--sensor`` …).
+        InputError: bad values (non-finite times, coordinates outside ``sensor`` …).
     """
     path = Path(path)
     data = _load(path)
@@ -274,7 +274,7 @@ def read_mat(path: Path, options: ReadOptions) -> MemoryRecording:
     stream = make_stream(x, y, t_us, cols["p"], width, height, source=str(path))
     if not options.sensor and len(stream):
         warnings.append(f"{path.name} stores no sensor size; using {stream.width}x"
-                        f"{stream.height} from the largest coordinates (pass --sensor WxH)")
+                        f"{stream.height} from the largest coordinates (pass `sensor=(W, H)`)")
     window = _window(data, path, options.time_unit)
     return MemoryRecording(stream, path, "mat", windows=[window] if window else [],
                            warnings=warnings)

@@ -3,8 +3,8 @@
 ``.npz`` keys (first set found): ``x,y,t,p`` | ``xs,ys,ts,ps`` | ``x,y,timestamp,polarity`` |
 one structured array (fields t/x/y/p or timestamp/polarity) under any key. Optional:
 ``width``, ``height`` (or ``sensor_size``), ``exposure_start``, ``exposure_end`` (same unit as t).
-``.npy``: a structured array with those fields, or an (E, 4) array in ``--columns`` order
-(default t x y p). Integer t = µs, float t = seconds unless ``--time-unit`` says otherwise.
+``.npy``: a structured array with those fields, or an (E, 4) array in ``columns`` order
+(default t x y p). Integer t = µs, float t = seconds unless ``time_unit`` says otherwise.
 Pickled (object) arrays are refused: loading a pickle can run code.
 """
 
@@ -96,7 +96,7 @@ def _build(cols: dict, path: Path, options: ReadOptions, fmt: str, width=None, h
         x, y = x.astype(np.int64) - 1, y.astype(np.int64) - 1
     if width is None or height is None:
         warnings.append("the file stores no sensor size: using max+1 of the coordinates "
-                        "(pass --sensor WxH to set it)")
+                        "(pass `sensor=(W, H)` to set it)")
     try:
         stream = make_stream(x, y, t, np.ravel(cols["p"]), width, height, source=str(path))
     except InputError as e:
@@ -130,7 +130,7 @@ def read_npz(path: Path, options: ReadOptions) -> MemoryRecording:
             size = np.ravel(_get(npz, "sensor_size", path))
             if len(size) < 2:
                 raise FormatError(f"sensor_size holds {len(size)} value(s), expected 2 (W, H)",
-                                  path=path, hint="pass --sensor WxH")
+                                  path=path, hint="pass `sensor=(W, H)`")
             width, height = (_size(v, name, path)
                              for v, name in zip(size[:2], ("width", "height"), strict=True))
         windows = []
@@ -144,7 +144,7 @@ def _size(value: np.ndarray, name: str, path: Path) -> int:
     v = np.asarray(value)
     if v.size != 1 or v.dtype.kind not in "iuf" or not float(v.ravel()[0]).is_integer():
         raise FormatError(f"'{name}' is {v.ravel()[:4].tolist()}, expected one whole number",
-                          path=path, hint="pass --sensor WxH")
+                          path=path, hint="pass `sensor=(W, H)`")
     return int(v.ravel()[0])
 
 
@@ -156,7 +156,7 @@ def _windows(start: np.ndarray, end: np.ndarray, options: ReadOptions,
         e = to_microseconds(np.ravel(end), options.time_unit)
     except InputError as err:
         raise FormatError(f"exposure_start/exposure_end: {err.detail}", path=path,
-                          hint="repair the stored windows, or give --exposure T0 T1") from None
+                          hint="repair the stored windows, or give `exposure=(T0, T1)`") from None
     if len(s) != len(e):
         raise FormatError(f"exposure_start has {len(s)} values but exposure_end {len(e)}",
                           path=path, hint="store one start and one end per window")
@@ -164,7 +164,7 @@ def _windows(start: np.ndarray, end: np.ndarray, options: ReadOptions,
     if len(bad):
         i = int(bad[0])
         raise FormatError(f"stored exposure window {i} [{s[i]}, {e[i]}] µs is empty or reversed",
-                          path=path, hint="repair the stored windows, or give --exposure T0 T1")
+                          path=path, hint="repair the stored windows, or give `exposure=(T0, T1)`")
     return [Exposure(int(a), int(b)) for a, b in zip(s, e, strict=True)]
 
 

@@ -7,12 +7,12 @@ Units and conventions (all three formats):
 * x = column, y = row, (0, 0) at the top-left; polarity 1 = ON (+1), 0 = OFF (-1);
 * sensor size from the header (``% geometry 1280x720``, ``% format EVT3;height=720;width=1280``,
   or ``% Width``/``% Height`` in .dat); else from the sensor named by ``% plugin_name`` (Gen3 →
-  640x480, Gen4/IMX636 → 1280x720, GenX320 → 320x320); else ``--sensor``; else max+1 (warned).
+  640x480, Gen4/IMX636 → 1280x720, GenX320 → 320x320); else ``sensor``; else max+1 (warned).
 
 Prophesee cameras record no intensity frames. Deblurring their events needs frames from a second
 camera whose clock is aligned with the event camera's (hardware trigger or a measured offset):
 give the frames as a folder with ``Exposure_start.txt``/``Exposure_end.txt``, or one window with
-``--exposure`` (see :mod:`trmd_cli.read.folders`).
+``exposure`` (see :mod:`trmd_cli.read.folders`).
 
 Decoders:
 
@@ -157,7 +157,7 @@ def _sensor(header: PropheseeHeader, options: ReadOptions,
             warnings: list[str]) -> tuple[int | None, int | None]:
     if header.width and header.height:
         if options.sensor and tuple(options.sensor) != (header.width, header.height):
-            warnings.append(f"--sensor {options.sensor[0]}x{options.sensor[1]} ignored: the "
+            warnings.append(f"`sensor={options.sensor}` ignored: the "
                             f"file says {header.width}x{header.height}")
         return header.width, header.height
     if options.sensor:
@@ -165,15 +165,15 @@ def _sensor(header: PropheseeHeader, options: ReadOptions,
     if header.sensor_hint:
         w, h = header.sensor_hint
         warnings.append(f"the header states no sensor size; using {w}x{h} for the "
-                        f"{header.fields.get('plugin_name', 'named sensor')} (pass --sensor "
-                        "WxH to override)")
+                        f"{header.fields.get('plugin_name', 'named sensor')} (pass "
+                        "`sensor=(W, H)` to override)")
         return w, h
     return None, None
 
 
 def _ignore_time_unit(options: ReadOptions, fmt: str, warnings: list[str]) -> None:
     if options.time_unit not in (None, "us"):
-        warnings.append(f"--time-unit {options.time_unit} ignored: {fmt} times are "
+        warnings.append(f"`time_unit={options.time_unit!r}` ignored: {fmt} times are "
                         "microseconds by specification")
 
 

@@ -1,12 +1,12 @@
 """Text event files, one event per line.
 
-Accepted layouts (columns default to ``t x y p``; ``--columns`` reorders, ``_`` skips one):
+Accepted layouts (columns default to ``t x y p``; ``columns`` reorders, ``_`` skips one):
 - ECD style: ``t x y p`` with t in float seconds;
 - E2VID style: a first line ``W H`` (sensor size), then events;
 - EVDI style: integer microseconds;
 - header lines (non-numeric) and ``#`` comments are skipped; separators are blanks or commas.
 Time unit: a t column written with a decimal point or exponent is seconds, integers are µs,
-unless ``--time-unit`` says otherwise. Polarity 0/−1 = OFF, 1 = ON.
+unless ``time_unit`` says otherwise. Polarity 0/−1 = OFF, 1 = ON.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..events import make_stream
 from .base import MemoryRecording, ReadOptions
-from .units import to_microseconds
+from .units import collapsed_times, to_microseconds
 
 __all__ = ["read_text", "parse_text_events"]
 
@@ -54,7 +54,7 @@ def read_text(path: Path, options: ReadOptions) -> MemoryRecording:
                 w, h = (float(f) for f in fields)
                 if not (w.is_integer() and h.is_integer() and 0 < w <= 65535 and 0 < h <= 65535):
                     raise FormatError(f"the first line '{' '.join(fields)}' is not a sensor size "
-                                      "W H", path=path, hint="fix that line or pass --sensor WxH")
+                                      "W H", path=path, hint="fix that line or pass `sensor=(W, H)`")
                 sensor = (int(w), int(h))
             skip = i + 1
             continue
@@ -67,7 +67,7 @@ def read_text(path: Path, options: ReadOptions) -> MemoryRecording:
     if len(first_data) < len(columns):
         raise FormatError(f"event lines have {len(first_data)} columns, expected "
                           f"{len(columns)} ({' '.join(columns)})", path=path,
-                          hint="use --columns to say which column is which")
+                          hint="use `columns` to say which column is which")
     delim = "," if "," in head[skip] else None
     if delim is None and all(("  " not in ln and "\t" not in ln and not ln.startswith(" "))
                              for ln in head[skip:] if ln.strip()):
@@ -91,14 +91,21 @@ def read_text(path: Path, options: ReadOptions) -> MemoryRecording:
     t_field = first_data[columns.index("t")]
     unit = options.time_unit
     if unit is None:
-        unit = "s" if ("." in t_field or "e" in t_field.lower()) else "us"
+        # the whole column decides: eSL-Net writes the first time as "0" and the rest as
+        # fractions of a second, and one integer-looking row must not truncate them all
+        tcol = cols["t"]
+        fractional = bool(len(tcol)) and not bool(np.all(np.mod(tcol, 1.0) == 0.0))
+        unit = "s" if ("." in t_field or "e" in t_field.lower() or fractional) else "us"
     t = to_microseconds(cols["t"], unit)
+    collapsed = collapsed_times(t, unit)
+    if collapsed:
+        warnings.append(collapsed)
     x, y = cols["x"], cols["y"]
     if options.one_based:
         x, y = x - 1, y - 1
     if sensor is None:
         warnings.append("the file stores no sensor size: using max+1 of the coordinates "
-                        "(pass --sensor WxH to set it)")
+                        "(pass `sensor=(W, H)` to set it)")
     w, h = (None, None) if sensor is None else sensor
     try:
         stream = make_stream(x, y, t, cols["p"], w, h, source=str(path))

@@ -6,7 +6,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["to_microseconds", "UNIT_SCALE_US"]
+__all__ = ["to_microseconds", "collapsed_times", "UNIT_SCALE_US"]
 
 #: microseconds per unit
 UNIT_SCALE_US = {"s": 1_000_000, "ms": 1_000, "us": 1, "ns": 0.001}
@@ -34,7 +34,7 @@ def to_microseconds(t: np.ndarray, unit: str | None) -> np.ndarray:
     # ±2**62 µs is ≈146 000 years: beyond it a value is a unit mistake, and int64 overflows
     top = max(abs(float(t.max())), abs(float(t.min()))) if len(t) else 0.0
     if top * scale >= 2.0**62:
-        raise InputError(f"times up to {top:g} {unit} are out of range", hint="check --time-unit")
+        raise InputError(f"times up to {top:g} {unit} are out of range", hint="check `time_unit`")
     if unit == "us" and t.dtype.kind in "iu":
         return t.astype(np.int64, copy=False)
     if unit == "ns" and t.dtype.kind in "iu":
@@ -42,3 +42,22 @@ def to_microseconds(t: np.ndarray, unit: str | None) -> np.ndarray:
     if t.dtype.kind in "iu":
         return t.astype(np.int64) * int(scale)
     return np.rint(t.astype(np.float64) * scale).astype(np.int64)
+
+
+#: fewer distinct times than this, for at least :data:`_COLLAPSE_EVENTS` events, means the
+#: times were read in the wrong unit (a DAVIS records thousands of distinct µs per frame)
+_COLLAPSE_DISTINCT = 16
+_COLLAPSE_EVENTS = 1000
+
+
+def collapsed_times(t_us: np.ndarray, unit: str) -> str | None:
+    """A warning when many events share a handful of times — what seconds read as
+    microseconds (or a unit too coarse) look like — else None. ``t_us``: int64 µs."""
+    if len(t_us) < _COLLAPSE_EVENTS:
+        return None
+    distinct = len(np.unique(t_us))
+    if distinct >= _COLLAPSE_DISTINCT:
+        return None
+    span = int(t_us.max() - t_us.min())
+    return (f"{len(t_us)} events fall on only {distinct} distinct times ({span} µs in all, read "
+            f"as {unit}): the time unit is probably wrong — set `time_unit`")

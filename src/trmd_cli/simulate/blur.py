@@ -78,7 +78,7 @@ def uniform_grid(exposures: list[Exposure], n: int, steps_per_exposure: int,
         raise InputError(
             f"{steps_per_exposure} sub-steps do not fit in a {min(e.duration_us for e in exps)}"
             " µs exposure (steps must be ≥ 1 µs)",
-            hint="use a longer --exposure-ms or less motion")
+            hint="use a longer `exposure_us` or less motion")
     parts = []
     cursor = lo
     for e in exps:

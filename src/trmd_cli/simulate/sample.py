@@ -66,13 +66,13 @@ def plan_exposures(frames: int, exposure_us: int, interval_us: int | None,
     """``frames`` windows of ``exposure_us`` starting every ``interval_us`` (default: 1.2 ×
     the exposure, i.e. gaps of a fifth of the exposure, close to a DAVIS346 at 8 fps)."""
     if frames < 1:
-        raise InputError(f"--frames must be ≥ 1, got {frames}")
+        raise InputError(f"`frames` must be ≥ 1, got {frames}")
     if exposure_us < 2:
         raise InputError(f"exposure of {exposure_us} µs is too short")
     interval = int(round(1.2 * exposure_us)) if interval_us is None else int(interval_us)
     if frames > 1 and interval < exposure_us:
         raise InputError(f"frame interval {interval} µs is shorter than the exposure "
-                         f"{exposure_us} µs", hint="raise --frame-interval-ms")
+                         f"{exposure_us} µs", hint="raise `interval_us`")
     return [Exposure(t0_us + k * interval, t0_us + k * interval + exposure_us)
             for k in range(frames)]
 

@@ -159,7 +159,7 @@ class VideoFrames(FrameSource):
             fps = fps or self.container_fps()
             if not fps or fps <= 0:
                 raise InputError("the video does not say its frame rate", path=path,
-                                 hint="pass --fps or --timestamps")
+                                 hint="pass `fps` or `times_us`")
             times_us = np.rint(np.arange(count) * (1e6 / fps)).astype(np.int64)
         self.times_us = np.asarray(times_us, np.int64)
         if len(self.times_us) != count:
@@ -291,14 +291,14 @@ def video_exposures(times_us: np.ndarray, exposure_us: int | None, interval_us: 
     step = int(round(1.2 * exp_us)) if interval_us is None else int(interval_us)
     if step < exp_us:
         raise InputError(f"frame interval {step} µs is shorter than the exposure {exp_us} µs",
-                         hint="raise --frame-interval-ms")
+                         hint="raise `interval_us`")
     start, end = int(times_us[0]), int(times_us[-1])
     fit = (end - start - exp_us) // step + 1 if end - start >= exp_us else 0
     count = fit if frames is None else min(fit, int(frames))
     if count < 1:
         raise InputError(f"a {exp_us / 1000:g} ms exposure does not fit in the "
                          f"{(end - start) / 1000:g} ms the frames span",
-                         hint="use a shorter --exposure-ms, more frames, or a lower --fps")
+                         hint="use a shorter `exposure_us`, more frames, or a lower `fps`")
     return [Exposure(start + k * step, start + k * step + exp_us) for k in range(count)]
 
 
