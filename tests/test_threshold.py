@@ -103,3 +103,21 @@ def test_colour_frame_is_estimated_from_its_luma(samples):
     rgb = np.repeat(s.blurry[..., None], 3, axis=2)
     assert estimate_contrast(rgb, s.events, s.exposure) == pytest.approx(
         estimate_contrast(s.blurry, s.events, s.exposure), rel=1e-3)
+
+
+def test_the_fallback_says_why():
+    ev = make_stream([1, 2, 3], [1, 1, 1], [10, 20, 30], [1, 1, 0], 32, 32)
+    b = np.full((32, 32), 0.5, np.float32)
+    est = search_contrast(b, EdiEvents.build(ev, Exposure(0, 100)))
+    assert not est.at_bound and "too few events (3" in est.reason
+
+
+def test_a_threshold_beyond_the_search_range_is_flagged(samples):
+    """Searched over a range that excludes the true c, the estimate sits on the range's edge
+    and says so; searched over the default range, it does not."""
+    s = samples[0]
+    prep = EdiEvents.build(s.events, s.exposure)
+    inside = search_contrast(s.blurry, prep)
+    assert inside.reliable and not inside.at_bound and inside.reason is None
+    low = search_contrast(s.blurry, prep, bounds=(0.3 * s.contrast, 0.6 * s.contrast))
+    assert low.at_bound and low.contrast == pytest.approx(0.6 * s.contrast, rel=1e-6)

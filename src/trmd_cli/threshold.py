@@ -67,12 +67,17 @@ class ContrastEstimate:
         reliable: False when the window held too few events to estimate from.
         energy: the consistency energy at ``contrast`` (lower is better; nan if unreliable).
         evaluations: number of energy evaluations spent.
+        at_bound: the best c lies at an end of the search range: the true threshold may lie
+            beyond it, or the energy has no minimum for this frame (a warning, not an error).
+        reason: why no estimate was made (``reliable`` False), for the user; None otherwise.
     """
 
     contrast: float
     reliable: bool
     energy: float
     evaluations: int
+    at_bound: bool = False
+    reason: str | None = None
 
 
 class ContrastObjective:
@@ -194,15 +199,17 @@ def search_contrast(blurry: np.ndarray, prep: EdiEvents | EdiBins,
     if not 0 < lo < hi:
         raise InputError(f"contrast search bounds {bounds} must satisfy 0 < low < high")
     if isinstance(prep, EdiBins):
-        if np.abs(prep.bins).sum() < _MIN_EVENTS:
-            return ContrastEstimate(DEFAULT_CONTRAST, False, float("nan"), 0)
+        count = int(np.abs(prep.bins).sum())
+        if count < _MIN_EVENTS:
+            return _fallback(f"too few events ({count}, at least {_MIN_EVENTS} needed)")
         obj = ContrastObjective.from_bins(prep, blurry)
     else:
         if prep.count < _MIN_EVENTS:
-            return ContrastEstimate(DEFAULT_CONTRAST, False, float("nan"), 0)
+            return _fallback(f"too few events ({prep.count}, at least {_MIN_EVENTS} needed)")
         obj = ContrastObjective.from_events(prep, blurry)
     if obj.total <= 0:
-        return ContrastEstimate(DEFAULT_CONTRAST, False, float("nan"), 0)
+        return _fallback("no events near the instants where the threshold is measured: are "
+                         "all events at one instant? (check `time_unit`)")
     # coarse grid (×1.5 steps), then a finer one (×1.13) around its best point, then a parabola
     # through the best fine point and its neighbours
     coarse = np.linspace(np.log(lo), np.log(hi), 8)
@@ -216,6 +223,7 @@ def search_contrast(blurry: np.ndarray, prep: EdiEvents | EdiBins,
     xs, fs = xs[order], fs[order]
     k = int(np.argmin(fs))
     best_x, best_f = xs[k], fs[k]
+    at_bound = k in (0, len(xs) - 1)
     if 0 < k < len(xs) - 1:
         x0, x1, x2 = xs[k - 1: k + 2]
         f0, f1, f2 = fs[k - 1: k + 2]
@@ -224,7 +232,12 @@ def search_contrast(blurry: np.ndarray, prep: EdiEvents | EdiBins,
             x = x1 - 0.5 * ((x1 - x0) ** 2 * (f1 - f2) - (x1 - x2) ** 2 * (f1 - f0)) / denom
             if x0 < x < x2:
                 best_x = x
-    return ContrastEstimate(float(np.exp(best_x)), True, float(best_f), obj.evaluations)
+    return ContrastEstimate(float(np.exp(best_x)), True, float(best_f), obj.evaluations,
+                            at_bound=at_bound)
+
+
+def _fallback(reason: str) -> ContrastEstimate:
+    return ContrastEstimate(DEFAULT_CONTRAST, False, float("nan"), 0, reason=reason)
 
 
 def estimate_contrast(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
