@@ -593,3 +593,20 @@ def test_chunk_cursor_random_and_sequential_requests(rng, no_cache, seekable):
     assert total == len(t)
     # windows in time order cost one pass: every chunk decoded once
     assert rec.decoded <= len(parts)
+
+
+def test_evt3_body_without_events_or_time_words_is_an_error(tmp_path):
+    """Two stray bytes after an EVT 3.0 header are not an empty recording; a body of only
+    TIME_HIGH words (a camera that saw nothing) is."""
+    import struct
+
+    pytest.importorskip("evt3")
+    head = b"% evt 3.0\n% geometry 64x48\n% end\n"
+    bad = tmp_path / "stray.raw"
+    bad.write_bytes(head + b"\x01\x02")
+    with pytest.raises(FormatError, match="promises EVT 3.0 .* no event and no time word"):
+        open_events(bad)
+    quiet = tmp_path / "quiet.raw"
+    quiet.write_bytes(head + struct.pack("<2H", 0x8001, 0x8002))
+    with open_events(quiet) as rec:
+        assert rec.num_events() == 0

@@ -405,8 +405,10 @@ class Evt3Recording(ChunkedRecording):
         super().__init__(path, "evt3", width, height, warnings)
         self.header = header
         self._batch_bytes = int(batch_bytes)
-        _whole_records(path, header.data_offset, 2, "16-bit word")
+        words = _whole_records(path, header.data_offset, 2, "16-bit word")
         self._build_index()
+        if words and self.num_events() == 0:
+            _check_has_time_words(path, header.data_offset, words)
 
     def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
         try:
@@ -422,6 +424,20 @@ class Evt3Recording(ChunkedRecording):
         except (OSError, ValueError, RuntimeError) as e:
             raise FormatError(f"EVT 3.0 decoding failed: {e}", path=self.path,
                               hint=_DAMAGED) from None
+
+
+def _check_has_time_words(path: Path, offset: int, words: int) -> None:
+    """A body without one event must at least hold EVT 3.0's TIME_HIGH words (type 0x8, sent
+    every 4 ms whatever the scene): bytes without them are not a recording."""
+    chunk = 1 << 20
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        for start in range(0, words, chunk):
+            w = np.fromfile(fh, "<u2", min(chunk, words - start))
+            if np.any((w >> 12) == 0x8):
+                return
+    raise FormatError(f"the header promises EVT 3.0 but its {2 * words}-byte body holds no "
+                      "event and no time word", path=path, hint=_DAMAGED)
 
 
 def read_evt3(path: Path, options: ReadOptions) -> Evt3Recording:
