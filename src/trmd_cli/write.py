@@ -171,6 +171,8 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
             except (PermissionError, FileNotFoundError) as e:
                 raise InputError(f"cannot write here ({e.strerror})", path=path.parent,
                                  hint="choose a folder you can write to") from None
+            # mkdtemp makes it private (0700); the finished folder is the user's, as mkdir's
+            os.chmod(tmp, 0o777 & ~_UMASK)
         yield tmp
         if path.exists():
             old = path.with_name(f"{_temp_prefix(path)}old.tmp")
