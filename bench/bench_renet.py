@@ -29,12 +29,12 @@ import numpy as np
 import torch
 
 from trmd_cli.events import EventStream, Exposure
-from trmd_cli.models import count_macs, count_params, create_model, list_models
+from trmd_cli.methods import TrmdMethod
+from trmd_cli.models import RENetInputs, count_macs, count_params, create_model, list_models
 from trmd_cli.models.estimator import TrmdEstimator
-from trmd_cli.pipeline import TrmdMethod
+from trmd_cli.models.weights import save_weights
 from trmd_cli.precision import autocast, cpu_has_native_bf16, resolve_precision
 from trmd_cli.voxel import scer_levels, scer_voxels
-from trmd_cli.weights import save_weights
 
 
 def _median_time(fn, repeats: int, warmup: int) -> tuple[float, float, float]:
@@ -68,7 +68,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--warmup", type=int, default=2)
-    ap.add_argument("--end-to-end", default="trmd_small_edi_c_fr_t",
+    ap.add_argument("--end-to-end", default="trmd_small_prior",
                     help="variant for the end-to-end run (default: the shipped one)")
     ap.add_argument("--precisions", nargs="*", default=None,
                     help="fp32 / bf16 (default: fp32, and bf16 where the CPU has it natively)")
@@ -87,29 +87,31 @@ def main() -> None:
     over = json.loads(args.args)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {w}x{h}, N={n}, "
           f"native bfloat16: {cpu_has_native_bf16()}")
-    print(f"{'variant':12s} {'prec':>5s} {'layout':>8s} {'params':>9s} {'GMACs':>7s} "
+    print(f"{'variant':22s} {'prec':>5s} {'layout':>8s} {'params':>9s} {'GMACs':>7s} "
           f"{'median ms':>10s} {'min ms':>8s} {'CPU ms':>8s}")
     g = torch.Generator().manual_seed(0)
     blurry = torch.rand(1, 1, h, w, generator=g)
-    voxels = torch.randn(1, 4 * n, h, w, generator=g)  # counts, then levels (timing nets)
+    counts = torch.randn(1, 2 * n, h, w, generator=g)
+    # every optional input: networks ignore what they do not take
+    levels = counts + 0.5 * torch.rand(counts.shape, generator=g)
+    inputs = RENetInputs(blurry, counts, levels=levels, contrast=0.25)
     cpu_dev = torch.device("cpu")
     for name in names:
         for layout in args.layouts:
             model = create_model(name, n=n, **over).eval()
             if layout == "channels_last":  # how TrmdEstimator holds the weights
                 model = model.to(memory_format=torch.channels_last)
-            v = voxels if model.timing else voxels[:, :2 * n]
             for prec in precisions:
                 dtype = resolve_precision(prec, cpu_dev)
 
-                def run(m=model, v=v, dtype=dtype):
+                def run(m=model, dtype=dtype):
                     with autocast(cpu_dev, dtype):
-                        return m(blurry, v, 0.25)  # the threshold is ignored where not taken
+                        return m(inputs)
 
                 with torch.inference_mode():
                     med, best, cpu = _median_time(run, args.repeats, args.warmup)
                 tag = "nhwc" if layout == "channels_last" else "nchw"
-                print(f"{name:12s} {prec:>5s} {tag:>8s} {count_params(model) / 1e6:8.2f}M "
+                print(f"{name:22s} {prec:>5s} {tag:>8s} {count_params(model) / 1e6:8.2f}M "
                       f"{count_macs(model, h, w) / 1e9:7.2f} {med * 1e3:10.1f} "
                       f"{best * 1e3:8.1f} {cpu * 1e3:8.1f}", flush=True)
 

@@ -3,7 +3,7 @@ model at a crop and batch size, for torch thread counts, memory layouts and prec
 bfloat16 autocast where the CPU has it natively, as ``train.amp`` does); plus the cost of
 simulating a training sample on the fly (what DataLoader workers would compete with).
 
-    python bench/bench_train.py [--model trmd_small_edi_c_fr_t] [--crop 96] [--batch 14]
+    python bench/bench_train.py [--model trmd_small_prior] [--crop 96] [--batch 14]
 
 Prints seconds per step and samples per second. Keep it short: the cores are shared.
 """
@@ -50,8 +50,7 @@ def step_time(model_name: str, crop: int, batch: int, steps: int, threads: int,
 
     def one() -> None:
         with autocast(torch.device("cpu"), dtype):
-            res = forward(model, b, needs_contrast=bool(getattr(model, "needs_contrast", False)),
-                          timing=bool(getattr(model, "timing", False)))
+            res = forward(model, b, needs=model.needs)
         res = res.float()
         loss, _ = total_loss({"residuals": res, "latent": reconstruct(b["blurry"], res)}, b, r)
         opt.zero_grad()
@@ -82,7 +81,7 @@ def simulate_time(crop: int, count: int) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--model", default="trmd_small_edi_c_fr_t")
+    ap.add_argument("--model", default="trmd_small_prior")
     ap.add_argument("--crop", type=int, default=96)
     ap.add_argument("--batch", type=int, default=14)
     ap.add_argument("--steps", type=int, default=5)

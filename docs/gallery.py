@@ -68,8 +68,8 @@ def _sources(shared: Path, davis_frames: int) -> dict[str, Source]:
 def _methods(weights: Path | None, threads: int | None, notes: list[str]):
     """EDI always; TRMD when weights can be found and loaded (else a note)."""
     from trmd_cli.errors import TrmdError
-    from trmd_cli.pipeline import MethodConfig, make_method
-    from trmd_cli.weights import default_weights_path
+    from trmd_cli.methods import MethodConfig, make_method
+    from trmd_cli.models.weights import default_weights_path
 
     methods = [("EDI", make_method(MethodConfig(method="edi")))]
     path = weights if weights is not None else default_weights_path()
@@ -95,8 +95,9 @@ def _label(name: str, result) -> str:
 def render_source(src: Source, methods, out: Path, limit: int | None,
                   notes: list[str]) -> list[str]:
     """Write one strip per frame of ``src`` into ``out``; return the file names written."""
-    from trmd_cli.pipeline import deblur_frames, open_inputs
+    from trmd_cli.deblur import deblur_frames
     from trmd_cli.read import read_image
+    from trmd_cli.read.inputs import open_inputs
     from trmd_cli.viz import strip
     from trmd_cli.write import write_image
 
@@ -209,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
                     notes.append(f"{name} skipped: {e}")
             if not rendered:
                 raise SystemExit("error: nothing rendered: " + "; ".join(notes))
+            # the same warning comes from the inputs and again from each frame: say it once
+            notes = list(dict.fromkeys(notes))
             write_text(tmp / "README.md", _readme(rendered, sources, notes))
     except TrmdError as e:
         print(f"error: {e}", file=sys.stderr)

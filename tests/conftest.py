@@ -23,7 +23,7 @@ def gopro(tmp_path_factory) -> Path:
 def no_shipped_weights(monkeypatch) -> None:
     """Run as an installation without shipped weights would: the default weights file is
     looked for under a name that does not exist."""
-    from trmd_cli import weights
+    from trmd_cli.models import weights
 
     monkeypatch.setattr(weights, "DEFAULT_WEIGHTS", "absent.safetensors")
     assert not weights.default_weights_path().is_file()

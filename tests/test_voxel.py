@@ -12,6 +12,7 @@ from trmd_cli.errors import InputError
 from trmd_cli.events import Exposure, make_stream
 from trmd_cli.voxel import (
     event_bins,
+    resample_bins,
     scer_from_bins,
     scer_voxels,
     scer_voxels_torch,
@@ -106,3 +107,24 @@ def test_property_voxels_equal_bruteforce(events, n):
     np.testing.assert_allclose(v, expect)
     # the sum of |channel| is monotone away from the middle for one-signed data
     assert v.shape == (2 * n, 3, 4)
+
+
+def test_resample_bins_sums_whole_bins_or_splits_evenly():
+    b = np.array([3, -1, 4, 1, -5, 9], np.int16).reshape(6, 1, 1)
+    # 2 divides 6: sums of whole bins, exact
+    np.testing.assert_array_equal(resample_bins(b, 2).ravel(), [6, 5])
+    np.testing.assert_array_equal(resample_bins(b, 6).ravel(), b.ravel())
+    # 4 does not: new bin i spans old bins [1.5·i, 1.5·(i+1)); straddling bins split by overlap
+    np.testing.assert_allclose(resample_bins(b, 4).ravel(),
+                               [3 - 0.5, -0.5 + 4, 1 - 2.5, -2.5 + 9])
+    # fewer bins than asked: each split evenly
+    np.testing.assert_allclose(resample_bins(b[:2], 4).ravel(), [1.5, 1.5, -0.5, -0.5])
+    # the total is kept
+    assert resample_bins(b, 5).sum() == pytest.approx(b.sum())
+
+
+def test_resample_bins_of_events_equals_binning_them_coarser(rng):
+    ev = random_stream(rng)
+    win = Exposure(0, 100_000)
+    np.testing.assert_array_equal(resample_bins(event_bins(ev, win, 18), 6),
+                                  event_bins(ev, win, 6))

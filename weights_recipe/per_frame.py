@@ -13,9 +13,10 @@ import argparse
 
 import numpy as np
 
-from trmd_cli.evaluate import PSNR_CAP_DB, open_dataset
+from trmd_cli.evaluate import PSNR_CAP_DB
+from trmd_cli.methods import EdiMethod, TrmdMethod
 from trmd_cli.metrics import psnr
-from trmd_cli.pipeline import EdiMethod, TrmdMethod
+from trmd_cli.read.dataset import open_dataset
 
 
 def main() -> None:

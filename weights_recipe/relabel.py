@@ -12,8 +12,8 @@ rewrites them as::
 
 The recipe keeps only keys `trmd train` reads, so ``recipe_from_dict`` still loads it. Only the
 header changes: the tensor bytes are copied as they are, and the header is written the way
-``trmd_cli.weights`` writes it (metadata keys sorted, compact JSON, padded with spaces to a
-multiple of 8 bytes), so the same input always gives the same bytes. ``ship.py`` applies the
+``trmd_cli.models.weights`` writes it (metadata keys sorted, compact JSON, padded with spaces to
+a multiple of 8 bytes), so the same input always gives the same bytes. ``ship.py`` applies the
 same labels when it writes weights. ``--valset`` must be the file the weights were validated on
 (``make_valset.py`` rebuilds it byte for byte).
 """
@@ -68,7 +68,7 @@ def read_header(data: bytes) -> tuple[dict[str, Any], bytes]:
 
 
 def write_header(header: dict[str, Any], body: bytes) -> bytes:
-    """The file ``trmd_cli.weights.save_weights`` would write for this header and body."""
+    """The file ``trmd_cli.models.weights.save_weights`` would write for this header and body."""
     header = dict(header)
     meta = header.pop("__metadata__", None)
     ordered: dict[str, Any] = {"__metadata__": dict(sorted(meta.items()))} if meta else {}
@@ -86,7 +86,7 @@ def relabel(path: Path, valset: Path, out: Path | None = None) -> Path:
     recipe = json.loads(meta["recipe"]) if meta.get("recipe") else None
     figures = json.loads(meta["figures"]) if meta.get("figures") else None
     label_valset(recipe, figures, valset)
-    # JSON entries as trmd_cli.weights encodes them (sorted keys, default separators)
+    # JSON entries as trmd_cli.models.weights encodes them (sorted keys, default separators)
     if recipe is not None:
         meta["recipe"] = json.dumps(recipe, sort_keys=True)
     if figures is not None:

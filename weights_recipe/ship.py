@@ -44,7 +44,7 @@ def main() -> None:
                     help="the network's arithmetic while measuring (default fp32; `trmd` itself "
                     "runs auto: bfloat16 on CPUs with AMX)")
     args = ap.parse_args()
-    from trmd_cli.weights import load_weights, save_weights, weights_hash
+    from trmd_cli.models.weights import load_weights, save_weights, weights_hash
 
     model, meta = load_weights(args.candidate)
     # what the model itself records (architecture, args, n …) is written again by save_weights

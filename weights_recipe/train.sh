@@ -4,7 +4,7 @@
 # Run the script again to resume: each stage passes --resume when its checkpoint exists, and
 # a finished stage (final.safetensors written) is skipped.
 # Stage 6 trains with recipe.toml as it is; stages 1–5 with recipe.toml and the keys of
-# stages/stageN.toml passed as `--set KEY=VALUE`.
+# stages/stageN.toml passed as `--set KEY=VALUE` (a [model.args] key as `model.args.KEY=…`).
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 RUNS=${RUNS:-$here/../../runs}
@@ -79,7 +79,7 @@ stage 2 shipped-v2 --data "$hard" --init-weights "$RUNS/shipped-v2-stage1/checkp
 # stage 3: the ladder around a given c, both sets, a fresh cosine and a weight average (85 min)
 stage 3 shipped-v3 --data "$main" --data "$hard" \
   --init-weights "$RUNS/shipped-v2/checkpoint.safetensors"
-# stage 4: grow the full-resolution refinement (trmd_small_edi_c_fr) from stage 3's weights;
+# stage 4: grow the full-resolution refinement (model.args refine = 3) from stage 3's weights;
 # stopped after 2,000 steps of its 6,500-step cosine (stage 5 continues from there)
 at_step() {  # the step of a run's checkpoint, 0 when there is none
   [ -f "$1/checkpoint.safetensors" ] || { echo 0; return; }
@@ -99,7 +99,7 @@ fi
 all=(--data "$main" --data "$hard" --data "$bright" --data "$bright2")
 # stage 5: all four sets, a fresh cosine (75 min)
 stage 5 shipped-v5 "${all[@]}" --init-weights "$s4/checkpoint.safetensors"
-# stage 6: grow the sub-bin timing inputs (trmd_small_edi_c_fr_t) from stage 5's final weights,
+# stage 6: grow the sub-bin timing inputs (trmd_small_prior) from stage 5's final weights,
 # 3,000 steps of a fresh cosine from 1e-4 (45 min): the shipped weights
 stage 6 s6-timing "${all[@]}" --init-weights "$RUNS/shipped-v5/final.safetensors"
 # then: python weights_recipe/ship.py "$RUNS/s6-timing/final.safetensors" --valset "$val"

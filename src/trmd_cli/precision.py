@@ -55,7 +55,8 @@ def resolve_precision(precision: str, device: torch.device) -> torch.dtype | Non
             return torch.float16
         return torch.bfloat16 if device.type == "cpu" and cpu_has_native_bf16() else None
     if precision == "fp16" and device.type != "cuda":
-        raise InputError("float16 needs a CUDA device", hint="use `precision='bf16'` or `precision='fp32'`")
+        raise InputError("float16 needs a CUDA device",
+                         hint="use `precision='bf16'` or `precision='fp32'`")
     return torch.bfloat16 if precision == "bf16" else torch.float16
 
 

@@ -18,8 +18,8 @@ import numpy as np
 from .errors import InputError, check_shape
 from .events import EventStream, Exposure
 
-__all__ = ["event_bins", "scer_from_bins", "scer_levels", "scer_voxels", "scer_voxels_torch",
-           "voxel_instants"]
+__all__ = ["event_bins", "scer_from_bins", "bins_from_scer", "resample_bins", "scer_levels",
+           "scer_voxels", "scer_voxels_torch", "voxel_instants"]
 
 
 def event_bins(events: EventStream, exposure: Exposure, num_bins: int) -> np.ndarray:
@@ -57,6 +57,47 @@ def scer_from_bins(bins):
     before = -torch.flip(torch.cumsum(torch.flip(bins[:n], (0,)), 0), (0,))
     after = torch.cumsum(bins[n:], 0)
     return torch.cat([before, after], 0)
+
+
+def bins_from_scer(voxels: np.ndarray) -> np.ndarray:
+    """Invert :func:`scer_from_bins`: SCER (2N, H, W) → signed bin counts.
+
+    With ``V(N) = 0`` put back in place, bin j is ``V(j+1) − V(j)`` (both halves).
+    """
+    v = np.asarray(voxels, np.float64)
+    if v.ndim != 3 or v.shape[0] % 2 or v.shape[0] == 0:
+        raise InputError(f"SCER voxels must be (2N, H, W), got {v.shape}")
+    n = v.shape[0] // 2
+    full = np.concatenate([v[:n], np.zeros((1, *v.shape[1:])), v[n:]], 0)
+    return np.diff(full, axis=0)
+
+
+def resample_bins(bins: np.ndarray, num_bins: int) -> np.ndarray:
+    """Signed counts of ``num_bins`` equal bins from those of M equal bins over the same span:
+    (num_bins, H, W) float32.
+
+    When ``num_bins`` divides M each new bin is the sum of M / ``num_bins`` whole bins: exact,
+    no assumption. Otherwise an old bin that straddles a new bin's edge has its count split in
+    proportion to the overlap, i.e. its events are taken as spread evenly over it (the
+    assumption :class:`~trmd_cli.edi.EdiBins` makes within a bin); the counts then have
+    fractions. The total per pixel is kept either way.
+    """
+    b = np.asarray(bins)
+    if b.ndim != 3 or b.shape[0] == 0:
+        raise InputError(f"bins must be (M, H, W) with M ≥ 1, got {b.shape}")
+    if num_bins < 1:
+        raise InputError(f"num_bins must be ≥ 1, got {num_bins}")
+    m = b.shape[0]
+    if m % num_bins == 0:
+        whole = b.reshape(num_bins, m // num_bins, *b.shape[1:]).sum(axis=1, dtype=np.float64)
+        return whole.astype(np.float32)
+    # overlaps in units of 1/(M·num_bins): new bin i is [i·M, (i+1)·M), old bin j [j·n, (j+1)·n)
+    i = np.arange(num_bins)[:, None]
+    j = np.arange(m)[None, :]
+    overlap = np.clip(np.minimum((i + 1) * m, (j + 1) * num_bins)
+                      - np.maximum(i * m, j * num_bins), 0, None)
+    weights = overlap / num_bins  # the share of old bin j that falls in new bin i
+    return np.tensordot(weights, b.astype(np.float64), axes=(1, 0)).astype(np.float32)
 
 
 def scer_voxels(events: EventStream, exposure: Exposure, n: int = 3) -> np.ndarray:

@@ -10,7 +10,7 @@ first rule that applies:
 
 A window that lies entirely outside the events' time range is an :class:`InputError`. A window
 inside the recording that simply holds no events is *not* an error: whoever reads the events of
-that window (``pipeline.py``) warns and passes the frame through.
+that window (``deblur.py``) warns and passes the frame through.
 """
 
 from __future__ import annotations

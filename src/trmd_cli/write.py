@@ -17,10 +17,14 @@ import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import InputError, OutputExistsError
+
+if TYPE_CHECKING:
+    from .deblur import FrameResult
 
 __all__ = [
     "atomic_path",
@@ -32,6 +36,9 @@ __all__ = [
     "write_json",
     "write_text",
     "write_npz",
+    "write_result_folder",
+    "fmt_fraction",
+    "clipped_fraction",
 ]
 
 
@@ -56,7 +63,8 @@ def check_output(path: str | Path, overwrite: bool) -> Path:
     if path.exists() and not overwrite:
         if not (path.is_dir() and not any(path.iterdir())):
             raise OutputExistsError("output already exists", path=path,
-                                    hint="pass --overwrite to replace it, or choose another path")
+                                    hint="pass `overwrite=True` to replace it, or choose another "
+                                    "path")
     if not path.parent.exists():
         raise InputError("the output's parent folder does not exist", path=path.parent,
                          hint="create it first")
@@ -272,6 +280,99 @@ def _json_default(o):
 
 
 # --------------------------------------------------------------------------------------------
+# The result folder of one deblurred frame
+
+
+def clipped_fraction(frames: np.ndarray) -> float:
+    """Fraction of values above 1 ([0, 1] intensity): they are clipped when written."""
+    return float((frames > 1.0).mean()) if frames.size else 0.0
+
+
+#: clipping below this fraction of the values is a few specular pixels: not worth a warning
+#: (the exact fraction is in meta.json)
+CLIPPED_WORTH_SAYING = 1e-4
+
+
+def clipped_message(fraction: float) -> str | None:
+    """The warning for a mean clipped fraction, or None when too small to matter."""
+    if fraction < CLIPPED_WORTH_SAYING:
+        return None
+    return f"{100 * fraction:.2f} % of output values were above 1 and were clipped to white"
+
+
+def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: int = 8,
+                        compare: bool = False, meta: dict | None = None) -> dict:
+    """Write one result into ``folder`` (which must exist): frame_000.png … frame_{K-1}.png,
+    sharp.png (the middle frame), timestamps.txt (µs on the events' clock), meta.json,
+    [compare.png: blurry | sharp]. Returns this frame's part of the meta.
+
+    Binned events have no clock: timestamps.txt then has a ``fraction`` column (of the
+    exposure, 0 = start, 1 = end, as exact floats) instead of ``time_us``, and the meta says
+    ``"binned": true`` with ``fractions`` instead of ``exposure_us`` / ``instants_us``.
+    """
+    from .viz import strip
+
+    folder = Path(folder)
+    frames = result.frames
+    width = max(3, len(str(len(frames) - 1)))
+    binned = result.exposure is None
+    lines = ["# file fraction (of the exposure: 0 = start, 1 = end; binned events, no event "
+             "clock)" if binned else "# file time_us (event clock)"]
+    for k, (img, t) in enumerate(zip(frames, result.instants_us, strict=True)):
+        name = f"frame_{k:0{width}d}.png"
+        write_image(folder / name, img, bit_depth)
+        lines.append(f"{name} {fmt_fraction(t) if binned else _fmt_us(t)}")
+    write_image(folder / "sharp.png", result.middle, bit_depth)
+    write_text(folder / "timestamps.txt", "\n".join(lines) + "\n")
+    if compare:
+        write_image(folder / "compare.png", strip([result.blurry, result.middle],
+                                                  ("blurry", "sharp"), keep_float=True),
+                    bit_depth)
+    if binned:
+        info = {
+            "frame": result.name,
+            "index": result.index,
+            "binned": True,
+            "frames": len(frames),
+            "fractions": [float(t) for t in result.instants_us],
+            "contrast": result.estimate.contrast,
+            "contrast_estimated": result.estimate.contrast_estimated,
+            # net counts per pixel and bin: the events are at least this many
+            "abs_count": result.num_events,
+            "passthrough": result.passthrough,
+            "clipped_fraction": clipped_fraction(frames),
+        }
+    else:
+        info = {
+            "frame": result.name,
+            "index": result.index,
+            "exposure_us": [result.exposure.start_us, result.exposure.end_us],
+            "frames": len(frames),
+            "instants_us": [float(t) for t in result.instants_us],
+            "contrast": result.estimate.contrast,
+            "contrast_estimated": result.estimate.contrast_estimated,
+            "events": result.num_events,
+            "hot_pixels": result.estimate.hot_pixels,
+            "passthrough": result.passthrough,
+            "clipped_fraction": clipped_fraction(frames),
+        }
+    full = {**(meta or {}), **info}
+    write_json(folder / "meta.json", full)
+    return info
+
+
+def _fmt_us(t: float) -> str:
+    return f"{t:.3f}".rstrip("0").rstrip(".")
+
+
+def fmt_fraction(f: float) -> str:
+    """A fraction of the exposure as written in timestamps.txt: the shortest decimal that
+    reads back as the same float (``0``, ``0.5``, ``0.16666666666666666``), never rounded."""
+    f = float(f)
+    return "0" if f == 0 else "1" if f == 1 else repr(f)
+
+
+# --------------------------------------------------------------------------------------------
 # Event files in the project's own layouts (docs/formats.md)
 
 #: version of the trmd HDF5 layout written here
@@ -285,7 +386,9 @@ class H5Writer:
     uint16, ``events/t`` int64 µs, ``events/p`` int8 ±1; ``frames/blurry`` (K, H, W[, 3])
     float32 [0, 1]; ``frames/exposure_start``, ``frames/exposure_end`` (K,) int64 µs; optional
     ``frames/sharp`` (K, 2N+1, H, W[, 3]) float32 and ``frames/contrast`` (K,) float32 (the
-    simulator's true mean contrast threshold). Events of consecutive samples share one timeline.
+    simulator's true mean contrast threshold); ``windows/start_us``, ``windows/end_us`` (K,)
+    int64 µs: exposure windows stored without frames. Events of consecutive samples share one
+    timeline.
 
     Usage::
 
@@ -359,6 +462,17 @@ class H5Writer:
                 raise InputError(f"'{name}' missing for frame {k} (the first frame had it)")
             g[name].resize((k + 1, *g[name].shape[1:]))
             g[name][k] = value
+
+    def add_windows(self, exposures) -> None:
+        """Exposure windows stored without frames (``windows/start_us``, ``windows/end_us``):
+        what a file that knows when its exposures were, but holds no images, carries."""
+        starts = np.array([e.start_us for e in exposures], np.int64)
+        ends = np.array([e.end_us for e in exposures], np.int64)
+        if "windows" in self._f:
+            raise InputError("exposure windows are already stored in this file")
+        g = self._f.create_group("windows")
+        g.create_dataset("start_us", data=starts)
+        g.create_dataset("end_us", data=ends)
 
     def close(self, ok: bool = True) -> None:
         if self._f is None:

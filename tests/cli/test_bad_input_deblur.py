@@ -69,7 +69,7 @@ class Good:
 @pytest.fixture(scope="module")
 def good(tmp_path_factory) -> Good:
     from trmd_cli.models import create_model
-    from trmd_cli.weights import save_weights
+    from trmd_cli.models.weights import save_weights
 
     d = tmp_path_factory.mktemp("good")
     s = stream()
@@ -191,7 +191,7 @@ def _weights_meta(g: Good, path: Path, **updates: str) -> Path:
 def _weights_nan(g: Good, path: Path) -> Path:
     from safetensors.numpy import load_file, save_file
 
-    from trmd_cli.weights import read_metadata
+    from trmd_cli.models.weights import read_metadata
 
     header, _ = _safetensors_header(g.weights.read_bytes())
     tensors = load_file(str(g.weights))
@@ -317,7 +317,7 @@ CASES = [
                                                                 ["--contrast", "0.2"]),
          "not sorted", commands=DH),
     Case("recording-without-frames", lambda d, g: ([_as_events(d, stream(), name="e.h5")], []),
-         "no frames with exposure times", commands=ALL),
+         "holds events but no frames", commands=ALL),
     # ---- weights (TRMD)
     Case("weights-random-bytes", lambda d, g: _img_ev(g.image, g, *_trmd(
         _w(d / "w.safetensors", _noise(4000)))), "not a readable safetensors",
@@ -561,17 +561,17 @@ def test_failure_in_the_middle_leaves_no_partial_output(good, tmp_path, target, 
 def test_unsorted_events_found_late_leave_no_partial_output(tmp_path, monkeypatch):
     """The damage is in the last window of a lazily read recording: three frames are done
     before it is found."""
-    from trmd_cli import pipeline
+    from trmd_cli import write
 
     rec = _h5_unsorted_late(tmp_path / "u.h5")
     calls = []
-    real = pipeline.write_result_folder
+    real = write.write_result_folder
 
     def counting(*a, **k):
         calls.append(1)
         return real(*a, **k)
 
-    monkeypatch.setattr(pipeline, "write_result_folder", counting)
+    monkeypatch.setattr(write, "write_result_folder", counting)
     r = runner.invoke(app, ["deblur", str(rec), "-o", str(tmp_path / "out"), "--contrast", "0.2"])
     assert_one_clear_line(r, str(rec), "not sorted")
     assert len(calls) == K - 1
@@ -659,8 +659,8 @@ def test_weights_for_another_channel_count_are_adapted(good, tmp_path):
     """Not refused, by design (TrmdEstimator): an RGB model sees a gray frame replicated and
     returns gray; a gray model runs once per colour channel of an RGB frame."""
     from trmd_cli.models import create_model
+    from trmd_cli.models.weights import save_weights
     from trmd_cli.read import read_image
-    from trmd_cli.weights import save_weights
 
     rgb_w = save_weights(tmp_path / "rgb.safetensors", create_model("test_trmd", n=3, channels=3),
                          meta={})

@@ -203,7 +203,7 @@ def test_bad_input_one_line_exit_2_nothing_written(pair, sample, tmp_path, case)
 
 def test_trmd_method_with_tiny_weights(pair, tmp_path):
     from trmd_cli.models import create_model
-    from trmd_cli.weights import save_weights
+    from trmd_cli.models.weights import save_weights
 
     w = save_weights(tmp_path / "w.safetensors", create_model("test_trmd", n=2), meta={})
     img, ev = pair
@@ -320,8 +320,348 @@ def test_window_outside_the_events_is_bad_input(sample):
 
 
 def test_help_names_the_real_default_method():
-    # the help text holds a literal (importing the pipeline for --help would be slow)
+    # the help text holds a literal (importing the methods for --help would be slow)
     from trmd_cli.cli.deblur import _DEFAULT_METHOD_HELP
-    from trmd_cli.pipeline import DEFAULT_METHOD
+    from trmd_cli.methods import DEFAULT_METHOD
 
     assert _DEFAULT_METHOD_HELP == DEFAULT_METHOD
+
+
+def test_sparse_frames_get_one_summary_line_about_c(sample, tmp_path):
+    """Five frames, each with too few events to estimate c: one line naming how many frames
+    and why, not five; nothing about clipping when (almost) nothing was clipped."""
+    rng = np.random.default_rng(0)
+    k, per = 5, 300
+    t = np.concatenate([np.sort(rng.integers(30_000 * i, 30_000 * i + 20_000, per))
+                        for i in range(k)])
+    stream = EventStream(rng.integers(0, W, k * per).astype(np.uint16),
+                         rng.integers(0, H, k * per).astype(np.uint16), t.astype(np.int64),
+                         rng.choice(np.array([-1, 1], np.int8), k * per), W, H)
+    rec = tmp_path / "rec.h5"
+    write_h5(rec, stream, blurry=np.full((k, H, W), 0.4, np.float32),
+             exposures=[Exposure(30_000 * i, 30_000 * i + 20_000) for i in range(k)])
+    r = run(rec, "-o", tmp_path / "out")
+    assert r.exit_code == 0, r.output
+    lines = [ln for ln in r.stderr.splitlines() if "default c" in ln]
+    assert len(lines) == 1, r.stderr
+    assert "5 of 5 frames" in lines[0] and "too few events (300" in lines[0]
+    assert "--contrast" in lines[0]
+    assert "clipped" not in r.stderr
+
+
+def test_contrast_notes_count_frames_by_kind():
+    from trmd_cli.deblur import ContrastNotes, FrameResult
+    from trmd_cli.methods import Estimate
+
+    def result(name, note, reliable=True):
+        est = Estimate(np.zeros((1, 2, 2), np.float32), np.zeros(1), 0.05, True, reliable,
+                       contrast_note=note)
+        return FrameResult(0, name, np.zeros((2, 2), np.float32), Exposure(0, 10), est, 5)
+
+    notes = ContrastNotes()
+    for r in (result("a", None), result("b", "edge"), result("c", "edge"),
+              result("d", "few", reliable=False)):
+        notes.add(r)
+    assert notes.lines() == ["frame d: few — set `contrast` if you know it",
+                             "2 of 4 frames (the first, b): edge — set `contrast` if you know it"]
+
+
+@pytest.mark.parametrize("fmt", ["mat", "txt"])
+def test_image_and_sizeless_events_take_the_sensor_size_from_the_image(sample, tmp_path, fmt):
+    """Events that never reach the last columns: the sensor is the image's size, not the
+    largest coordinate + 1."""
+    keep = sample.events.x < W - 10
+    s = sample.events
+    img = tmp_path / "blurry.png"
+    write_image(img, sample.blurry, 16)
+    ev = tmp_path / f"events.{fmt}"
+    if fmt == "mat":
+        sio = pytest.importorskip("scipy.io")
+        sio.savemat(ev, {"t": s.t[keep] / 1e6, "x": s.x[keep].astype(float),
+                         "y": s.y[keep].astype(float), "p": (s.p[keep] > 0).astype(float),
+                         "start_timestamp": np.array([[sample.exposure.start_us / 1e6]]),
+                         "end_timestamp": np.array([[sample.exposure.end_us / 1e6]])})
+    else:
+        rows = [f"{t / 1e6:.6f} {x} {y} {int(p > 0)}"
+                for t, x, y, p in zip(s.t[keep], s.x[keep], s.y[keep], s.p[keep])]
+        ev.write_text("\n".join(rows) + "\n")
+    args = [img, ev, "-o", tmp_path / "out", "--contrast", "0.2"]
+    if fmt == "txt":
+        args += ["--exposure", f"{sample.exposure.start_us / 1e6}",
+                 f"{sample.exposure.end_us / 1e6}"]
+    r = run(*args)
+    assert r.exit_code == 0, r.output
+    assert "stores no sensor size" not in r.stderr
+    assert read_image(tmp_path / "out" / "sharp.png").shape == (H, W)
+
+
+def test_events_only_file_alone_says_the_image_is_missing(tmp_path, sample):
+    ev = tmp_path / "events.npz"
+    write_events_npz(ev, sample.events)
+    for extra in ([], ["--exposure", "0", "1000"]):
+        r = run(ev, "-o", tmp_path / "out", *extra)
+        assert r.exit_code == 2
+        assert "events only" in r.stderr or "no frames" in r.stderr, r.stderr
+        assert "blurry image before it" in r.stderr
+        assert "frames carry their own" not in r.stderr
+    assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# binned events (IMAGES_DIR BINS_FILE): no event times
+
+
+B = 18  # bins per frame: 2N = 6 divides it, every latent instant is a bin edge
+
+
+@pytest.fixture(scope="module")
+def binned(sample):
+    from tests.helpers.bins import binned_frames
+
+    return binned_frames(sample, B)
+
+
+def _frames_u8(folder) -> list[np.ndarray]:
+    import cv2
+
+    return [cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in sorted(folder.glob("frame_*.png"))]
+
+
+def _fractions(path) -> list[float]:
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("# file fraction")
+    return [float(ln.split()[1]) for ln in lines[1:]]
+
+
+def test_binned_mat_deblurs_with_edi_like_from_bins(binned, tmp_path):
+    from tests.helpers.bins import write_binned_set
+    from trmd_cli.methods import EdiMethod
+    from trmd_cli.write import to_uint
+
+    images, bins = write_binned_set(tmp_path / "set", binned, "mat", "flat")
+    out = tmp_path / "out"
+    r = run(images, bins, "-o", out, "--contrast", "0.2", "--compare")
+    assert r.exit_code == 0, r.output
+    said = [ln for ln in r.stderr.splitlines() if "binned events" in ln]
+    assert len(said) == 1 and "18 bins per frame" in said[0] and "hot pixels" in said[0]
+    assert "wrote" in r.stdout and "2 frames × 7 latent frames (edi, N=3)" in r.stdout
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["0002", "0003"]
+    for name, f in zip(("0002", "0003"), binned, strict=True):
+        folder = out / name
+        # far sharper than the blurry frame against the simulator's middle frame
+        sharp = read_image(folder / "sharp.png")
+        assert psnr(sharp, f.sharp[3]) > psnr(f.blurry, f.sharp[3]) + 8, name
+        # bit-identical to the method called directly on the frame as read and its bins
+        blurry = read_image(images / f"{name}.png")
+        est = EdiMethod(3, 0.2).from_bins(blurry, f.bins)
+        for got, want in zip(_frames_u8(folder), est.frames, strict=True):
+            np.testing.assert_array_equal(got, to_uint(want, 8))
+        # instants as fractions k/2N of the exposure, written as the very floats the method
+        # used (read back equal, not rounded); no µs anywhere
+        assert _fractions(folder / "timestamps.txt") == est.instants_us.tolist()
+        np.testing.assert_allclose(est.instants_us, np.arange(7) / 6, rtol=0, atol=1e-15)
+        meta = json.loads((folder / "meta.json").read_text())
+        assert meta["binned"] is True and meta["bins_per_frame"] == B
+        assert meta["fractions"] == est.instants_us.tolist()
+        assert not {"exposure_us", "instants_us", "time_offset_us"} & set(meta)
+        assert meta["abs_count"] == int(np.abs(f.bins.astype(int)).sum())
+        assert (folder / "compare.png").exists()
+    top = json.loads((out / "meta.json").read_text())
+    assert top["binned"] is True and len(top["frames"]) == 2 and "time_offset_us" not in top
+
+
+@pytest.mark.parametrize("fmt", ["npy", "npz"])
+def test_binned_flat_and_4d_arrays_give_the_same_output(binned, tmp_path, fmt):
+    from tests.helpers.bins import write_binned_set
+
+    outs = []
+    for layout in ("flat", "4d"):
+        images, bins = write_binned_set(tmp_path / layout, binned, fmt, layout)
+        out = tmp_path / f"out-{layout}"
+        r = run(images, bins, "-o", out, "--n", "2", "--bit-depth", "16")
+        assert r.exit_code == 0, r.output
+        outs.append(out)
+    for name in ("0002", "0003"):
+        a, b = (_frames_u8(o / name) for o in outs)
+        assert len(a) == 5 and a[0].dtype == np.uint16
+        for x, y in zip(a, b, strict=True):
+            np.testing.assert_array_equal(x, y)
+        assert (json.loads((outs[0] / name / "meta.json").read_text())["contrast"]
+                == json.loads((outs[1] / name / "meta.json").read_text())["contrast"])
+
+
+def test_binned_odd_bin_count_says_how_it_places_the_instants(sample, tmp_path):
+    from tests.helpers.bins import binned_frames, write_binned_set
+
+    frames = binned_frames(sample, 9)  # 2N = 6 does not divide 9
+    images, bins = write_binned_set(tmp_path / "set", frames, "npy", "4d")
+    r = run(images, bins, "-o", tmp_path / "out", "--contrast", "0.2")
+    assert r.exit_code == 0, r.output
+    said = [ln for ln in r.stderr.splitlines() if "binned events" in ln]
+    assert len(said) == 1 and "9 bins do not split into 6 equal parts" in said[0]
+    sharp = read_image(tmp_path / "out" / "0002" / "sharp.png")
+    assert psnr(sharp, frames[0].sharp[3]) > psnr(frames[0].blurry, frames[0].sharp[3]) + 8
+
+
+@pytest.mark.parametrize("bins_per_frame", [12, 18])
+def test_binned_trmd_with_tiny_weights(sample, tmp_path, bins_per_frame):
+    """N = 2: 12 bins are summed three by three, 18 are split where a bin straddles an
+    instant; either way the network runs on the counts as TrmdMethod.from_bins does."""
+    from tests.helpers.bins import binned_frames, write_binned_set
+    from trmd_cli.methods import TrmdMethod
+    from trmd_cli.models import create_model
+    from trmd_cli.models.weights import save_weights
+    from trmd_cli.write import to_uint
+
+    w = save_weights(tmp_path / "w.safetensors", create_model("test_trmd", n=2), meta={})
+    frames = binned_frames(sample, bins_per_frame)
+    images, bins = write_binned_set(tmp_path / "set", frames, "mat", "flat")
+    out = tmp_path / "o"
+    r = run(images, bins, "-o", out, "--weights", w, "--threads", "1", "--precision", "fp32")
+    assert r.exit_code == 0, r.output
+    method = TrmdMethod(2, w, threads=1, precision="fp32")
+    said = [ln for ln in r.stderr.splitlines() if "binned events" in ln]
+    assert len(said) == 1
+    assert ("timing inputs get the counts" in said[0]) == method.needs.timing
+    assert ("do not split" in said[0]) == (bins_per_frame % 4 != 0)
+    meta = json.loads((out / "0002" / "meta.json").read_text())
+    assert meta["method"] == "trmd" and meta["n"] == 2 and meta["binned"]
+    assert _fractions(out / "0002" / "timestamps.txt") == [0, 0.25, 0.5, 0.75, 1]
+    est = method.from_bins(read_image(images / "0003.png"), frames[1].bins)
+    for got, want in zip(_frames_u8(out / "0003"), est.frames, strict=True):
+        np.testing.assert_array_equal(got, to_uint(want, 8))
+
+
+def test_binned_trmd_with_the_shipped_weights(binned, tmp_path):
+    from tests.helpers.bins import write_binned_set
+    from trmd_cli.methods import MethodConfig, unavailable
+
+    if unavailable(MethodConfig("trmd")):
+        pytest.skip("this installation ships no weights")
+    images, bins = write_binned_set(tmp_path / "set", binned, "npy", "4d")
+    out = tmp_path / "o"
+    r = run(images, bins, "-o", out, "--method", "trmd", "--threads", "1")
+    assert r.exit_code == 0, r.output
+    said = [ln for ln in r.stderr.splitlines() if "binned events" in ln]
+    assert len(said) == 1 and "timing inputs get the counts" in said[0]
+    for name, f in zip(("0002", "0003"), binned, strict=True):
+        sharp = read_image(out / name / "sharp.png")
+        assert psnr(sharp, f.sharp[3]) > psnr(f.blurry, f.sharp[3]) + 5, name
+
+
+@pytest.mark.parametrize("case", ["rows", "frames", "fraction", "nan", "size", "dtype",
+                                  "offset", "exposure", "time-unit"])
+def test_binned_bad_input_one_line_exit_2_nothing_written(binned, tmp_path, case):
+    from tests.helpers.bins import write_binned_set, write_bins
+
+    images, bins = write_binned_set(tmp_path / "set", binned, "npy", "flat")
+    counts = np.load(bins)
+    args = []
+    expect = ""
+    if case == "rows":  # 37 rows for 2 frames
+        write_bins(bins, np.concatenate([counts, counts[:1]]))
+        expect = "37 bins, which 2 frames do not divide"
+    elif case == "frames":  # (3, B, H, W) for 2 images
+        write_bins(bins, np.stack([counts[:B], counts[B:], counts[:B]]))
+        expect = "bins of 3 frames, the images number 2"
+    elif case == "fraction":
+        f = counts.astype(np.float64)
+        f[20, 5, 7] = 0.5
+        write_bins(bins, f)
+        expect = "frame 1, bin 2 holds a count that is not a whole number (0.5)"
+    elif case == "nan":
+        f = counts.astype(np.float32)
+        f[3, 1, 1] = np.nan
+        write_bins(bins, f)
+        expect = "frame 0, bin 3 holds NaN"
+    elif case == "size":
+        write_bins(bins, counts[:, :-1])
+        expect = f"the bins are {W}x{H - 1} but the frames are {W}x{H}"
+    elif case == "dtype":
+        write_bins(bins, counts > 0)
+        expect = "expected integer counts"
+    elif case == "offset":
+        args = ["--time-offset", "-40ms"]
+        expect = "no event clock: --time-offset"
+    elif case == "exposure":
+        args = ["--exposure", "0", "1"]
+        expect = "no event clock: --exposure"
+    else:
+        args = ["--time-unit", "ms"]
+        expect = "--time-unit does not apply"
+    out = tmp_path / "out"
+    r = run(images, bins, "-o", out, *args)
+    assert r.exit_code == 2, r.output
+    lines = [line for line in r.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:"), r.output
+    assert expect in lines[0], lines[0]
+    assert not out.exists()
+    assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+def test_binned_file_given_as_events_points_to_the_frames_folder(binned, tmp_path):
+    from tests.helpers.bins import write_binned_set
+
+    images, bins = write_binned_set(tmp_path / "set", binned, "mat", "flat")
+    r = run(images / "0002.png", bins, "-o", tmp_path / "out")
+    assert r.exit_code == 2
+    assert "holds binned events" in r.stderr and "IMAGES_DIR BINS_FILE" in r.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_binned_frames_without_events_pass_through(binned, tmp_path):
+    from tests.helpers.bins import BinnedFrame, write_binned_set
+
+    silent = BinnedFrame(binned[1].blurry, np.zeros_like(binned[1].bins), binned[1].sharp)
+    images, bins = write_binned_set(tmp_path / "set", [binned[0], silent], "npy", "4d")
+    r = run(images, bins, "-o", tmp_path / "out", "--contrast", "0.2")
+    assert r.exit_code == 0, r.output
+    assert "frame 0003: its bins hold no events; passed through" in r.stderr
+    assert "(1 passed through without events)" in r.stdout
+    np.testing.assert_allclose(read_image(tmp_path / "out" / "0003" / "sharp.png"),
+                               read_image(images / "0003.png"), atol=1 / 255)
+
+
+# real binned events: LEDVDI (skipped without ../shared/data)
+
+
+@needs_shared
+def test_ledvdi_deblur_every_frame_sharper(tmp_path):
+    """The real command on all 54 frames (c given: the estimate costs ~0.5 s a frame)."""
+    base = SHARED / "real" / "ledvdi-rotate"
+    out = tmp_path / "ledvdi"
+    r = run(base / "blurred", base / "EventBin3.mat", "-o", out, "--contrast", "0.4")
+    assert r.exit_code == 0, r.output
+    assert "18 bins per frame" in r.stderr
+    folders = sorted(p for p in out.iterdir() if p.is_dir())
+    assert [p.name for p in folders] == [f"{k:04d}" for k in range(2, 56)]
+    for folder in folders:
+        blurry = read_image(base / "blurred" / f"{folder.name}.png")
+        assert sharpness(read_image(folder / "sharp.png")) > 1.1 * sharpness(blurry), \
+            folder.name
+
+
+@needs_shared
+def test_ledvdi_auto_contrast_on_a_few_frames(tmp_path):
+    """`--method edi` as the user runs it (c estimated per frame) on three frames: their images
+    and their rows of EventBin3.mat, paired by sorted order as in the whole set."""
+    import shutil
+
+    sio = pytest.importorskip("scipy.io")
+    from tests.helpers.bins import write_bins
+
+    base = SHARED / "real" / "ledvdi-rotate"
+    counts = sio.loadmat(base / "EventBin3.mat")["event_bins"]
+    (tmp_path / "blurred").mkdir()
+    picked = (20, 40, 50)
+    for k in picked:
+        shutil.copy(base / "blurred" / f"{k:04d}.png", tmp_path / "blurred")
+    bins = write_bins(tmp_path / "bins.npy",
+                      np.concatenate([counts[18 * (k - 2): 18 * (k - 1)] for k in picked]))
+    out = tmp_path / "out"
+    r = run(tmp_path / "blurred", bins, "-o", out)
+    assert r.exit_code == 0, r.output
+    for k in picked:
+        blurry = read_image(base / "blurred" / f"{k:04d}.png")
+        sharp = read_image(out / f"{k:04d}" / "sharp.png")
+        assert sharpness(sharp) > 1.3 * sharpness(blurry), k

@@ -1,5 +1,5 @@
 """`trmd eval` and trmd_cli.evaluate: figures against hand-computed values, analytic cases for
-the no-ground-truth figures, JSON structure, and bad input."""
+the no-ground-truth figures (trmd_cli.metrics), JSON structure, and bad input."""
 
 from __future__ import annotations
 
@@ -14,19 +14,17 @@ from typer.testing import CliRunner
 from tests.helpers.data import SHARED, needs_shared, texture
 from trmd_cli.cli.app import app
 from trmd_cli.errors import InputError
-from trmd_cli.evaluate import (
-    bins_from_scer,
+from trmd_cli.evaluate import evaluate_dataset, parse_methods
+from trmd_cli.events import make_stream
+from trmd_cli.metrics import (
     consistency,
     consistency_from_counts,
-    evaluate_dataset,
     interval_counts,
     noise_sigma,
-    parse_methods,
     sharpness,
 )
-from trmd_cli.events import make_stream
 from trmd_cli.simulate import MotionRanges, SensorConfig, make_sequence
-from trmd_cli.voxel import scer_from_bins, scer_voxels
+from trmd_cli.voxel import bins_from_scer, scer_from_bins, scer_voxels
 from trmd_cli.write import H5Writer, write_events_npz, write_image, write_text
 
 runner = CliRunner()
@@ -146,7 +144,7 @@ def test_no_true_contrast_skips_edi_true_c_with_a_note(nogt_h5):
 
 
 def test_ground_truth_with_another_n_names_the_right_n(gt_h5):
-    with pytest.raises(InputError, match="--n 3"):
+    with pytest.raises(InputError, match="`n=3`"):
         evaluate_dataset(gt_h5, ["blurry"], n=2)
 
 
@@ -348,7 +346,7 @@ def test_cli_overall_table_for_several_sets(gt_h5):
 
 def test_cli_trmd_with_weights(gt_h5, tmp_path):
     from trmd_cli.models import create_model
-    from trmd_cli.weights import save_weights
+    from trmd_cli.models.weights import save_weights
 
     weights = save_weights(tmp_path / "w.safetensors", create_model("test_trmd", n=N), meta={})
     out = tmp_path / "e.json"
@@ -404,3 +402,93 @@ def test_real_frames_without_ground_truth():
     assert e.sharpness > 1.5 * b.sharpness
     assert e.noise > b.noise  # EDI multiplies the sensor's noise into the frame
     assert e.consistency < b.consistency
+
+
+def test_without_ground_truth_the_report_says_how_to_read_consistency(nogt_h5, tmp_path):
+    """EDI's ≈ 0 consistency error is by construction: the table says so, and the JSON too."""
+    js = tmp_path / "r.json"
+    r = run("eval", nogt_h5, "--methods", "blurry,edi", "--json", js)
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.stdout.split())
+    assert "EDI builds its frames from exactly that relation" in text
+    assert "by construction" in json.loads(js.read_text())["protocol"]["consistency"] \
+        or "by construction" in json.dumps(json.loads(js.read_text())["protocol"])
+
+
+# ---------------------------------------------------------------------------------------------
+# binned events: a folder of blurry frames with a bins file
+
+
+def _binned_folder(root, seq, bins_per_frame, *, sharp=True, name="event_bins.npz"):
+    from tests.helpers.bins import write_bins
+    from trmd_cli.voxel import event_bins
+
+    (root / "blurry").mkdir(parents=True)
+    for k in range(len(seq.exposures)):
+        write_image(root / "blurry" / f"{k:04d}.png", seq.blurry[k])
+        if sharp:
+            (root / "sharp" / f"{k:04d}").mkdir(parents=True)
+            for j, img in enumerate(seq.sharp[k]):
+                write_image(root / "sharp" / f"{k:04d}" / f"{j}.png", img)
+    counts = np.stack([event_bins(seq.events, e, bins_per_frame) for e in seq.exposures])
+    return root, write_bins(root / name, counts.astype(np.int32))
+
+
+def test_cli_binned_folder_with_sharp_frames(seq, tmp_path):
+    from trmd_cli.methods import EdiMethod
+    from trmd_cli.models import create_model
+    from trmd_cli.models.weights import save_weights
+    from trmd_cli.read import read_image
+
+    root, bins = _binned_folder(tmp_path / "set", seq, 18)
+    weights = save_weights(tmp_path / "w.safetensors", create_model("test_trmd", n=N), meta={})
+    out = tmp_path / "e.json"
+    r = run("eval", root, "--methods", "blurry,edi,trmd", "--weights", weights, "--threads", 1,
+            "--json", out)
+    assert r.exit_code == 0, r.output
+    assert "binned events only (18 bins per frame, no event times)" in r.stderr
+    d = json.loads(out.read_text())["datasets"][0]
+    assert d["kind"] == "binned" and d["ground_truth"] is True and d["frames"] == 2
+    m = d["methods"]
+    assert m["trmd"]["skipped"] is None and m["trmd"]["frames"] == 2
+    counts = np.load(bins)["event_bins"]
+    for k, (e, b) in enumerate(zip(m["edi"]["per_frame"], m["blurry"]["per_frame"],
+                                   strict=True)):
+        assert e["psnr_mid"] > b["psnr_mid"] + 3
+        # the figure is EDI's from_bins on the frame and its bins, scored by hand
+        blurry = read_image(root / "blurry" / f"{k:04d}.png")
+        truth = read_image(root / "sharp" / f"{k:04d}" / f"{N}.png")
+        est = EdiMethod(N).from_bins(blurry, counts[k])
+        assert e["contrast"] == pytest.approx(est.contrast, abs=1e-6)  # JSON: 6 decimals
+        assert e["psnr_mid"] == pytest.approx(_psnr_by_hand(est.frames[N], truth), abs=1e-5)
+
+
+def test_cli_binned_folder_without_ground_truth(seq, tmp_path):
+    root, _ = _binned_folder(tmp_path / "set", seq, 9, sharp=False, name="EventBin.mat")
+    out = tmp_path / "e.json"
+    r = run("eval", root, "--methods", "blurry,edi", "--json", out)
+    assert r.exit_code == 0, r.output
+    assert "9 bins do not split into 2N = 6 equal parts" in " ".join(r.stderr.split())
+    d = json.loads(out.read_text())["datasets"][0]
+    assert d["kind"] == "binned" and d["ground_truth"] is False
+    b, e = d["methods"]["blurry"]["mean"], d["methods"]["edi"]["mean"]
+    assert e["sharpness"] > b["sharpness"] and e["consistency"] < b["consistency"]
+
+
+def test_binned_folder_with_two_bins_files_is_bad_input(seq, tmp_path):
+    root, bins = _binned_folder(tmp_path / "set", seq, 6, sharp=False)
+    np.save(root / "more.npy", np.load(bins)["event_bins"])
+    r = run("eval", root, "--methods", "blurry")
+    assert r.exit_code == 2
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "holds 2 bins files (event_bins.npz, more.npy)" in lines[0]
+
+
+@needs_shared
+def test_ledvdi_binned_folder_without_ground_truth():
+    root = SHARED / "real" / "ledvdi-rotate"
+    rep = evaluate_dataset(root, "blurry,edi", n=N, limit=2)
+    assert rep.kind == "binned" and not rep.ground_truth and rep.frames == 2
+    b, e = rep.method("blurry"), rep.method("edi")
+    assert e.mean("sharpness") > b.mean("sharpness")
+    assert e.mean("consistency") < b.mean("consistency")

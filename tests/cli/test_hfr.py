@@ -1,4 +1,4 @@
-"""`trmd hfr` and the continuous stream (pipeline.hfr_stream): frame counts and timing, gaps
+"""`trmd hfr` and the continuous stream (hfr.hfr_stream): frame counts and timing, gaps
 filled from the events (checked against ground truth), videos, TRMD with in-between instants."""
 
 from __future__ import annotations
@@ -10,15 +10,12 @@ import pytest
 from typer.testing import CliRunner
 
 from trmd_cli.cli.app import app
+from trmd_cli.deblur import deblur_frames, exposure_instants
 from trmd_cli.events import Exposure
-from trmd_cli.pipeline import (
-    EdiMethod,
-    deblur_frames,
-    exposure_instants,
-    hfr_stream,
-    open_inputs,
-)
+from trmd_cli.hfr import hfr_stream
+from trmd_cli.methods import EdiMethod
 from trmd_cli.read.frames import read_image
+from trmd_cli.read.inputs import open_inputs
 from trmd_cli.write import write_h5, write_image
 
 runner = CliRunner()
@@ -76,7 +73,8 @@ def test_gap_is_filled_from_the_events(gapped, seq):
 
 
 def test_no_events_in_the_gap_gives_a_cross_fade():
-    from trmd_cli.pipeline import Estimate, FrameResult
+    from trmd_cli.deblur import FrameResult
+    from trmd_cli.methods import Estimate
 
     def result(name, e, value):
         inst = exposure_instants(e, 3)
@@ -135,7 +133,7 @@ def test_cli_images_and_events(seq, tmp_path):
 
 def test_trmd_in_between_instants_are_propagated(gapped, tmp_path):
     from trmd_cli.models import create_model
-    from trmd_cli.weights import save_weights
+    from trmd_cli.models.weights import save_weights
 
     w = save_weights(tmp_path / "w.safetensors", create_model("test_trmd", n=2), meta={})
     out = tmp_path / "o"
@@ -161,3 +159,70 @@ def test_frames_out_of_time_order_is_bad_input(seq, tmp_path):
     r = runner.invoke(app, ["hfr", str(path), "-o", str(out)])
     assert r.exit_code == 2 and "time order" in r.output
     assert not out.exists()
+
+
+# --------------------------------------------------------------------------------------------
+# binned events: the exposures' frames in order, no event times, no gap filling
+
+
+@pytest.fixture
+def binned_seq(tmp_path, seq):
+    """The three exposures as a frames folder and a .mat of 18 bins each (flat)."""
+    from tests.helpers.bins import write_bins
+    from trmd_cli.voxel import event_bins
+
+    (tmp_path / "blurry").mkdir()
+    for k in range(3):
+        write_image(tmp_path / "blurry" / f"{k + 1:04d}.png", seq.blurry[k], 16)
+    counts = np.concatenate([event_bins(seq.events, e, 18) for e in seq.exposures])
+    return tmp_path / "blurry", write_bins(tmp_path / "EventBin.mat", counts.astype(np.int16))
+
+
+def test_binned_hfr_folder_of_pngs_with_fractions(binned_seq, seq, tmp_path):
+    images, bins = binned_seq
+    out = tmp_path / "frames"
+    r = runner.invoke(app, ["hfr", str(images), str(bins), "-o", str(out), "--method", "edi",
+                            "--contrast", "0.2"])
+    assert r.exit_code == 0, r.output
+    said = [ln for ln in r.stderr.splitlines() if "binned events" in ln]
+    assert len(said) == 1 and "gap filling need event times" in said[0]
+    assert "21 frames (21 from exposures, 0 filling gaps)" in r.stdout
+    lines = (out / "timestamps.txt").read_text().splitlines()
+    assert lines[0].startswith("# file fraction kind source")
+    rows = [ln.split() for ln in lines[1:]]
+    assert [row[0] for row in rows] == [f"{i:06d}.png" for i in range(21)]
+    grid = np.linspace(0, 1, 7).tolist()
+    assert [float(row[1]) for row in rows] == grid * 3  # evenly spaced within each exposure
+    assert {row[2] for row in rows} == {"exposure"}
+    assert [row[3] for row in rows] == ["0001"] * 7 + ["0002"] * 7 + ["0003"] * 7
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["binned"] is True and meta["fill_gaps"] is False and "time_offset_us" not in meta
+    assert meta["frames"] == {"exposure": 21, "gap": 0} and meta["bins_per_frame"] == 18
+    # the stream's frames are each exposure's latent frames, in order: against the truth
+    for k in range(3):
+        for j in (1, 3, 5):
+            img = read_image(out / f"{7 * k + j:06d}.png")
+            assert psnr(img, seq.sharp[k, j]) > psnr(seq.blurry[k], seq.sharp[k, j]) + 3, (k, j)
+
+
+@pytest.mark.parametrize("args", [["--per-exposure", "9"], ["--time-offset", "5ms"]])
+def test_binned_hfr_options_that_need_event_times(binned_seq, tmp_path, args):
+    images, bins = binned_seq
+    out = tmp_path / "o.gif"
+    r = runner.invoke(app, ["hfr", str(images), str(bins), "-o", str(out), "--method", "edi",
+                            "--contrast", "0.2", *args])
+    assert r.exit_code == 2, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and args[0] in lines[0], r.output
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+def test_binned_hfr_video(binned_seq, tmp_path):
+    import imageio.v3 as iio
+
+    images, bins = binned_seq
+    out = tmp_path / "slowmo.gif"
+    r = runner.invoke(app, ["hfr", str(images), str(bins), "-o", str(out), "--method", "edi",
+                            "--contrast", "0.2", "--n", "2", "--per-exposure", "5"])
+    assert r.exit_code == 0, r.output
+    assert iio.imread(out).shape[0] == 15

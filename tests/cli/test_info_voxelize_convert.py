@@ -121,7 +121,7 @@ def test_info_describes_weights(tmp_path):
     import torch
 
     from trmd_cli.models import count_params, create_model
-    from trmd_cli.weights import describe_weights, save_weights
+    from trmd_cli.models.weights import describe_weights, save_weights
 
     torch.manual_seed(0)
     plain = save_weights(tmp_path / "plain.safetensors", create_model("test_trmd"), half=False)
@@ -143,3 +143,37 @@ def test_info_describes_weights(tmp_path):
     bad.write_bytes(b"not weights")
     r = runner.invoke(app, ["info", str(bad)])
     assert r.exit_code == 2 and "Traceback" not in r.output
+
+
+@pytest.mark.parametrize("source", ["mat", "npz"])
+def test_convert_to_h5_keeps_windows_stored_without_frames(tmp_path, rng, source):
+    """A .mat (eSL-Net start/end_timestamp) or .npz window survives the trip to HDF5 and back,
+    to the microsecond, and `trmd info` of the result lists it."""
+    s = random_stream(rng)
+    if source == "mat":
+        sio = pytest.importorskip("scipy.io")
+        src = tmp_path / "ev.mat"
+        sio.savemat(src, {"section_event_timestamp": s.t[None] / 1e6,
+                          "section_event_x": s.x[None].astype(np.int64),
+                          "section_event_y": s.y[None].astype(np.int64),
+                          "section_event_polarity": (s.p[None] > 0).astype(np.int64),
+                          "start_timestamp": np.array([[0.010]]),
+                          "end_timestamp": np.array([[0.090]])})
+        want = [Exposure(10_000, 90_000)]
+    else:
+        src = tmp_path / "ev.npz"
+        want = [Exposure(1_000, 40_000), Exposure(50_000, 90_000)]
+        write_events_npz(src, s, want)
+    out = tmp_path / "ev.h5"
+    r = runner.invoke(app, ["convert", str(src), "-o", str(out), "--sensor", "40x30"])
+    assert r.exit_code == 0, r.output
+    from trmd_cli.read import ReadOptions
+    from trmd_cli.summary import summarize
+
+    with open_events(src, ReadOptions(sensor=(40, 30))) as a, open_events(out) as b:
+        assert b.stored_windows() == want == a.stored_windows()
+        np.testing.assert_array_equal(a.events().t, b.events().t)
+        sa, sb = summarize(a), summarize(b)
+        assert sb["exposure_source"] == sa["exposure_source"] == "windows"
+        assert [(f["start_us"], f["end_us"], f["events"]) for f in sb["frames"]] == \
+            [(f["start_us"], f["end_us"], f["events"]) for f in sa["frames"]]

@@ -1,4 +1,4 @@
-"""Growing a trained RE-Net wider (``RENet.load_grown`` with a narrower U-Net): the wide
+"""Growing a trained RE-Net wider (``models.grow.load_grown`` with a narrower U-Net): the wide
 network computes exactly what the narrow weights computed, the new channels learn from the
 first step, and a training run can start a wider network from a narrower run."""
 
@@ -11,7 +11,8 @@ from safetensors.torch import load_file
 from tests.helpers.training import make_gopro_h5, recipe
 from tests.helpers.training import net_inputs as _inputs
 from tests.helpers.training import trained_like as _trained_like
-from trmd_cli.models import create_model
+from trmd_cli.models import RENetInputs, create_model
+from trmd_cli.models.grow import Grown, load_grown
 from trmd_cli.train.loop import train
 from trmd_cli.train.recipe import apply_overrides
 
@@ -29,15 +30,15 @@ def test_wider_network_computes_what_the_narrow_weights_computed(kw):
     if "refine_width" in kw:
         wide_kw["refine_width"] = kw["refine_width"] + 2
     new = create_model("test_trmd", **wide_kw).eval()
-    grown = new.load_grown(old.state_dict())
-    assert "down1.0.weight" in grown and "head.weight" in grown
+    grown = load_grown(new, old.state_dict())
+    assert "down1.0.weight" in grown.names and "head.weight" in grown.names
     # every U-Net tensor really is larger, and the old values sit inside it
     assert new.down4[0].weight.shape[0] == 10 > old.down4[0].weight.shape[0]
     blurry, voxels = _inputs()
-    if kw.get("timing"):
-        voxels = torch.cat([voxels, voxels + 0.5 * torch.rand_like(voxels)], 1)
+    levels = voxels + 0.5 * torch.rand_like(voxels) if kw.get("timing") else None
+    x = RENetInputs(blurry, voxels, levels=levels, contrast=0.3)
     with torch.no_grad():
-        a, b = old(blurry, voxels, 0.3), new(blurry, voxels, 0.3)
+        a, b = old(x), new(x)
     torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
     assert a.abs().max() > 1e-2  # a non-trivial output was compared
 
@@ -45,9 +46,9 @@ def test_wider_network_computes_what_the_narrow_weights_computed(kw):
 def test_new_channels_carry_signal_and_their_zero_weights_learn():
     old = _trained_like()
     new = create_model("test_trmd", **WIDE).train()
-    new.load_grown(old.state_dict())
+    load_grown(new, old.state_dict())
     blurry, voxels = _inputs()
-    new(blurry, voxels).square().mean().backward()
+    new(RENetInputs(blurry, voxels)).square().mean().backward()
     w = new.down2[0]
     old_out, old_in = old.down2[0].weight.shape[:2]
     # weights from the new channels of down1 into the old ones of down2: zero, with a gradient
@@ -60,9 +61,9 @@ def test_new_channels_carry_signal_and_their_zero_weights_learn():
 def test_narrower_or_other_networks_are_refused():
     wide = _trained_like(**WIDE)
     with pytest.raises(RuntimeError):
-        create_model("test_trmd").load_grown(wide.state_dict())  # shrinking is not growing
+        load_grown(create_model("test_trmd"), wide.state_dict())  # shrinking is not growing
     with pytest.raises(RuntimeError):
-        create_model("test_trmd", feat_width=6, **WIDE).load_grown(_trained_like().state_dict())
+        load_grown(create_model("test_trmd", feat_width=6, **WIDE), _trained_like().state_dict())
 
 
 def test_training_starts_a_wider_network_from_a_narrower_run(tmp_path):
@@ -79,3 +80,12 @@ def test_training_starts_a_wider_network_from_a_narrower_run(tmp_path):
     assert b["model/down4.0.weight"].shape[0] == 10
     old = a_res["model/down1.0.weight"]
     torch.testing.assert_close(b["model/down1.0.weight"][:old.shape[0]], old, atol=1e-9, rtol=0)
+
+
+def test_weights_that_fit_grow_nothing():
+    old = _trained_like(prior="edi_c", refine=2, timing=True)
+    new = create_model("test_trmd", prior="edi_c", refine=2, timing=True)
+    grown = load_grown(new, old.state_dict())
+    assert grown == Grown() and grown.names == []
+    for k, v in old.state_dict().items():
+        assert torch.equal(new.state_dict()[k], v), k

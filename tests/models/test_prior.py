@@ -11,11 +11,11 @@ import torch
 from trmd_cli.edi import EdiEvents
 from trmd_cli.errors import InputError
 from trmd_cli.events import Exposure, make_stream
-from trmd_cli.models import create_model
+from trmd_cli.models import RENetInputs, create_model
 from trmd_cli.models.prior import MAX_LOG_RATIO, edi_prior
+from trmd_cli.models.weights import load_weights, save_weights
 from trmd_cli.reconstruct import reconstruct
 from trmd_cli.voxel import scer_voxels
-from trmd_cli.weights import load_weights, save_weights
 
 
 def test_hand_computed_n1():
@@ -76,21 +76,22 @@ def test_renet_with_prior_starts_at_edi():
     voxels = torch.randint(-4, 5, (2, 6, 21, 19), generator=g).float()
     _, res = edi_prior(blurry, voxels, (0.1, 0.2, 0.3))
     with torch.no_grad():
-        out = net(blurry, voxels)
+        out = net(RENetInputs(blurry, voxels))
         # near-zero random head weights elsewhere: close to EDI at the ladder's second contrast
         assert (out - res[:, 1]).abs().max() < 0.05
         identity = torch.zeros_like(net.head.weight)
         identity[net.head.weight > 0.5] = 1.0
         net.head.weight.copy_(identity)
         net.head.bias.zero_()
-        torch.testing.assert_close(net(blurry, voxels), res[:, 1], rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(net(RENetInputs(blurry, voxels)), res[:, 1], rtol=1e-5,
+                                   atol=1e-6)
 
 
 @pytest.mark.parametrize("channels", [1, 3])
 def test_renet_with_prior_shapes_and_gradients(channels):
     net = create_model("test_trmd", n=2, channels=channels, prior="edi")
     blurry = torch.rand(2, channels, 13, 30, requires_grad=True)
-    out = net(blurry, torch.randn(2, 4, 13, 30))
+    out = net(RENetInputs(blurry, torch.randn(2, 4, 13, 30)))
     assert out.shape == (2, 4, channels, 13, 30)
     out.square().mean().backward()
     assert blurry.grad is not None and torch.isfinite(blurry.grad).all()
@@ -103,10 +104,10 @@ def test_prior_args_recorded_and_round_trip(tmp_path):
     assert "prior" not in create_model("test_trmd").args  # older weights files stay identical
     p = save_weights(tmp_path / "w.safetensors", net, meta={}, half=False)
     loaded, meta = load_weights(p)
-    assert loaded.prior == "edi" and loaded.prior_contrasts == (0.15, 0.3)
-    b, v = torch.rand(1, 1, 17, 17), torch.randn(1, 6, 17, 17)
+    assert loaded.args["prior"] == "edi" and loaded.encoder.contrasts == (0.15, 0.3)
+    x = RENetInputs(torch.rand(1, 1, 17, 17), torch.randn(1, 6, 17, 17))
     with torch.no_grad():
-        torch.testing.assert_close(loaded(b, v), net(b, v), rtol=0, atol=0)
+        torch.testing.assert_close(loaded(x), net(x), rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("kwargs", [dict(prior="physics"),

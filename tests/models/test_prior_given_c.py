@@ -8,12 +8,12 @@ import pytest
 import torch
 
 from trmd_cli.errors import InputError, ShapeError
-from trmd_cli.models import create_model
+from trmd_cli.methods import EdiMethod, TrmdMethod
+from trmd_cli.models import RENetInputs, RENetNeeds, create_model
 from trmd_cli.models.estimator import TrmdEstimator
 from trmd_cli.models.prior import DEFAULT_CONTRASTS, RELATIVE_CONTRASTS, edi_prior
-from trmd_cli.pipeline import EdiMethod, TrmdMethod
+from trmd_cli.models.weights import load_weights, save_weights
 from trmd_cli.train.loop import forward
-from trmd_cli.weights import load_weights, save_weights
 
 
 def _inputs(seed: int = 3, b: int = 2, h: int = 15, w: int = 18):
@@ -43,35 +43,36 @@ def test_given_c_network_is_the_fixed_one_scaled():
     fixed = create_model("test_trmd", prior="edi").eval()
     given = create_model("test_trmd", prior="edi_c").eval()
     given.load_state_dict(fixed.state_dict())  # same shapes: weights carry over
-    assert given.needs_contrast and not fixed.needs_contrast
+    assert given.needs == RENetNeeds(contrast=True) and fixed.needs == RENetNeeds()
     blurry, voxels = _inputs()
     with torch.no_grad():
         # c = 0.2 puts the relative ladder exactly on the fixed one
-        torch.testing.assert_close(given(blurry, voxels, 0.2), fixed(blurry, voxels))
+        torch.testing.assert_close(given(RENetInputs(blurry, voxels, contrast=0.2)),
+                                   fixed(RENetInputs(blurry, voxels)))
         other = create_model("test_trmd", prior="edi",
                              prior_contrasts=[0.3 * r for r in RELATIVE_CONTRASTS]).eval()
         other.load_state_dict(fixed.state_dict())
-        both = given(blurry, voxels, torch.tensor([0.2, 0.3]))
-        torch.testing.assert_close(both[1:], other(blurry[1:], voxels[1:]))
-        torch.testing.assert_close(both[:1], fixed(blurry[:1], voxels[:1]))
+        both = given(RENetInputs(blurry, voxels, contrast=torch.tensor([0.2, 0.3])))
+        torch.testing.assert_close(both[1:], other(RENetInputs(blurry[1:], voxels[1:])))
+        torch.testing.assert_close(both[:1], fixed(RENetInputs(blurry[:1], voxels[:1])))
 
 
 def test_given_c_network_refuses_missing_or_bad_c():
     net = create_model("test_trmd", prior="edi_c").eval()
     blurry, voxels = _inputs()
     with pytest.raises(InputError, match="contrast threshold"):
-        net(blurry, voxels)
+        net(RENetInputs(blurry, voxels))
     with pytest.raises(InputError, match="positive"):
-        net(blurry, voxels, torch.tensor([0.2, -1.0]))
+        net(RENetInputs(blurry, voxels, contrast=torch.tensor([0.2, -1.0])))
     with pytest.raises(ShapeError, match="batch of 2"):
-        net(blurry, voxels, torch.tensor([0.2, 0.2, 0.2]))
+        net(RENetInputs(blurry, voxels, contrast=torch.tensor([0.2, 0.2, 0.2])))
 
 
 def test_weights_round_trip_and_estimator_needs_c(tmp_path):
     net = create_model("test_trmd", prior="edi_c").eval()
     p = save_weights(tmp_path / "w.safetensors", net, meta={}, half=False)
     loaded, _ = load_weights(p)
-    assert loaded.needs_contrast and loaded.prior_contrasts == RELATIVE_CONTRASTS
+    assert loaded.needs.contrast and loaded.encoder.contrasts == RELATIVE_CONTRASTS
     est = TrmdEstimator(loaded)
     blurry, voxels = _inputs(b=1)
     with pytest.raises(InputError, match="contrast threshold"):
@@ -79,7 +80,8 @@ def test_weights_round_trip_and_estimator_needs_c(tmp_path):
     out = est(blurry[0, 0].numpy(), voxels[0].numpy(), 0.25)
     with torch.no_grad():
         from trmd_cli.reconstruct import reconstruct
-        ref = reconstruct(blurry, net(blurry, voxels, 0.25))[0, :, 0].numpy()
+        ref = reconstruct(blurry, net(RENetInputs(blurry, voxels, contrast=0.25)))[0, :, 0]
+    ref = ref.numpy()
     np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
 
 
@@ -102,7 +104,7 @@ def test_pipeline_hands_the_network_edis_threshold(tmp_path, monkeypatch):
     given = TrmdMethod(3, p, threads=1, contrast=0.37)(s.blurry, s.events, s.exposure)
     assert seen[-1] == 0.37 and given.contrast == 0.37 and not given.contrast_estimated
     auto = TrmdMethod(3, p, threads=1)(s.blurry, s.events, s.exposure)
-    edi_c = EdiMethod(3).prepare(s.blurry, s.events, s.exposure)[1]
+    edi_c = EdiMethod(3).prepare(s.blurry, s.events, s.exposure).contrast
     assert seen[-1] == pytest.approx(edi_c) and auto.contrast == pytest.approx(edi_c)
     assert auto.contrast_estimated and auto.frames.shape == (7, 48, 64)
 
@@ -111,21 +113,22 @@ def test_training_forward_jitters_the_true_c(monkeypatch):
     got: list = []
 
     class Probe(torch.nn.Module):
-        def forward(self, blurry, voxels, contrast=None):
-            got.append(contrast)
+        def forward(self, inputs):
+            got.append(inputs.contrast)
             return torch.zeros(1)
 
     blurry, voxels = _inputs(b=4)
     batch = {"blurry": blurry, "voxels": voxels,
              "contrast": torch.tensor([0.2, float("nan"), 0.4, 0.3])}
-    forward(Probe(), batch, needs_contrast=True, fallback_contrast=0.25)
+    forward(Probe(), batch, needs=RENetNeeds(contrast=True), fallback_contrast=0.25)
     torch.testing.assert_close(got[-1], torch.tensor([0.2, 0.25, 0.4, 0.3]))
     torch.manual_seed(5)
-    forward(Probe(), batch, needs_contrast=True, jitter=0.15, fallback_contrast=0.25)
+    forward(Probe(), batch, needs=RENetNeeds(contrast=True), jitter=0.15,
+            fallback_contrast=0.25)
     torch.manual_seed(5)
     factor = torch.exp(0.15 * torch.randn(4))
     torch.testing.assert_close(got[-1], torch.tensor([0.2, 0.25, 0.4, 0.3]) * factor)
-    forward(Probe(), batch, needs_contrast=False)
+    forward(Probe(), batch, needs=RENetNeeds())
     assert got[-1] is None
 
 

@@ -12,32 +12,32 @@ from tests.helpers.training import make_gopro_h5, recipe
 from tests.helpers.training import net_inputs as _inputs
 from tests.helpers.training import trained_like as _trained_like
 from trmd_cli.errors import InputError
-from trmd_cli.models import count_macs, create_model
+from trmd_cli.models import RENetInputs, count_macs, create_model
+from trmd_cli.models.grow import load_grown
+from trmd_cli.models.weights import load_weights, save_weights
 from trmd_cli.train.loop import train
 from trmd_cli.train.recipe import apply_overrides
-from trmd_cli.weights import load_weights, save_weights
 
 
 @pytest.mark.parametrize("prior", ["none", "edi_c"])
 def test_grown_network_computes_what_the_weights_computed(prior):
     old = _trained_like(prior=prior)
     new = create_model("test_trmd", prior=prior, refine=3, refine_width=5).eval()
-    grown = new.load_grown(old.state_dict())
-    assert sorted({k.split(".")[1] for k in grown}) == ["0", "1", "2"]
-    assert all(k.startswith("refine.") for k in grown)
-    blurry, voxels = _inputs()
+    grown = load_grown(new, old.state_dict())
+    assert sorted({k.split(".")[1] for k in grown.names}) == ["0", "1", "2"]
+    assert all(k.startswith("refine.") for k in grown.names)
+    assert grown.names == list(grown.identity)
+    x = RENetInputs(*_inputs(), contrast=0.3)
     with torch.no_grad():
         # the same arithmetic up to float rounding (a dirac conv adds exact zeros)
-        torch.testing.assert_close(new(blurry, voxels, 0.3), old(blurry, voxels, 0.3),
-                                   rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(new(x), old(x), rtol=1e-6, atol=1e-6)
 
 
 def test_refinement_learns_from_the_first_step():
     net = create_model("test_trmd", refine=2).train()
-    net.load_grown(_trained_like().state_dict())
-    blurry, voxels = _inputs()
-    net(blurry, voxels).square().mean().backward()
-    hs = net._head_skip
+    load_grown(net, _trained_like().state_dict())
+    net(RENetInputs(*_inputs())).square().mean().backward()
+    hs = net.up_width
     first = net.refine[0][0].weight.grad
     # the fused features enter through weights that start at zero: they must get a gradient
     assert first[:, hs:].abs().sum() > 0
@@ -49,16 +49,16 @@ def test_load_grown_refuses_other_mismatches():
     state = old.state_dict()
     net = create_model("test_trmd", refine=1)
     with pytest.raises(RuntimeError, match="missing"):
-        net.load_grown({k: v for k, v in state.items() if not k.startswith("head.")})
+        load_grown(net, {k: v for k, v in state.items() if not k.startswith("head.")})
     with pytest.raises(RuntimeError, match="unexpected"):
-        net.load_grown({**state, "extra.weight": torch.zeros(1)})
+        load_grown(net, {**state, "extra.weight": torch.zeros(1)})
     grown = create_model("test_trmd", refine=2)
     partial = {k: v for k, v in grown.state_dict().items() if not k.startswith("refine.1.")}
     with pytest.raises(RuntimeError, match="missing"):
-        create_model("test_trmd", refine=2).load_grown(partial)  # half a refinement
+        load_grown(create_model("test_trmd", refine=2), partial)  # half a refinement
     wide = create_model("test_trmd", feat_width=6, refine=1)
     with pytest.raises(RuntimeError):
-        wide.load_grown(state)  # shapes differ: not a grown version of these weights
+        load_grown(wide, state)  # shapes differ: not a grown version of these weights
 
 
 def test_refine_arguments_are_checked():
@@ -72,7 +72,7 @@ def test_refine_arguments_are_checked():
 def test_macs_count_the_refinement_by_hand():
     base = create_model("test_trmd")
     net = create_model("test_trmd", refine=2, refine_width=6)
-    hs, fw = net._head_skip, 4  # test_trmd: widths[0] // 2 = 2 channels, feat_width 4
+    hs, fw = net.up_width, 4  # test_trmd: widths[0] // 2 = 2 channels, feat_width 4
     h, w = 48, 64  # already a multiple of 16: no padding
     hand = h * w * 9 * ((hs + fw) * 6 + 6 * hs)
     assert count_macs(net, h, w) - count_macs(base, h, w) == hand
@@ -83,9 +83,9 @@ def test_weights_round_trip_keeps_the_refinement(tmp_path):
     path = save_weights(tmp_path / "w.safetensors", net, half=False)
     back, meta = load_weights(path)
     assert back.args["refine"] == 2 and back.args["refine_width"] == 3
-    blurry, voxels = _inputs()
+    x = RENetInputs(*_inputs())
     with torch.no_grad():
-        torch.testing.assert_close(back(blurry, voxels), net(blurry, voxels))
+        torch.testing.assert_close(back(x), net(x))
 
 
 def test_training_grows_a_network_from_a_run_without_refinement(tmp_path):

@@ -9,6 +9,7 @@ import torch.nn.functional as F
 from trmd_cli.errors import InputError, ShapeError
 from trmd_cli.models import (
     RENet,
+    RENetInputs,
     channel_attention_logits,
     channel_cross_attention,
     count_macs,
@@ -17,7 +18,7 @@ from trmd_cli.models import (
     list_models,
     variant_args,
 )
-from trmd_cli.models.renet import (
+from trmd_cli.models.blocks import (
     ChannelAttention,
     CrossChannelBlock,
     PointwiseConv,
@@ -87,7 +88,7 @@ def test_output_shape_any_size(h, w, batch):
     m = create_model("test_trmd").eval()
     b, v = _inputs(batch, 1, 3, h, w)
     with torch.no_grad():
-        out = m(b, v)
+        out = m(RENetInputs(b, v))
     assert out.shape == (batch, 6, 1, h, w)
     assert torch.isfinite(out).all()
 
@@ -98,7 +99,7 @@ def test_forward_backward_odd_size(n, channels):
     torch.manual_seed(n)
     m = create_model("test_trmd", n=n, channels=channels).train()
     b, v = _inputs(2, channels, n, 37, 53)
-    out = m(b, v)
+    out = m(RENetInputs(b, v))
     assert out.shape == (2, 2 * n, channels, 37, 53)
     out.square().mean().backward()
     for name, p in m.named_parameters():
@@ -112,8 +113,8 @@ def test_batch_items_independent():
     m = create_model("test_trmd").eval()
     b, v = _inputs(2, 1, 3, 21, 19)
     with torch.no_grad():
-        both = m(b, v)
-        one = m(b[1:], v[1:])
+        both = m(RENetInputs(b, v))
+        one = m(RENetInputs(b[1:], v[1:]))
     torch.testing.assert_close(both[1:], one, atol=1e-5, rtol=1e-5)
 
 
@@ -123,11 +124,11 @@ def test_crop_keeps_top_left_alignment():
     m = create_model("test_trmd").eval()
     b, v = _inputs(1, 1, 3, 32, 48)
     with torch.no_grad():
-        full = m(b, v)
+        full = m(RENetInputs(b, v))
         bp = torch.nn.functional.pad(b[..., :30, :45], (0, 3, 0, 2), mode="replicate")
         vp = torch.nn.functional.pad(v[..., :30, :45], (0, 3, 0, 2), mode="replicate")
-        padded_by_hand = m(bp, vp)[..., :30, :45]
-        cropped = m(b[..., :30, :45], v[..., :30, :45])
+        padded_by_hand = m(RENetInputs(bp, vp))[..., :30, :45]
+        cropped = m(RENetInputs(b[..., :30, :45], v[..., :30, :45]))
     assert full.shape[-2:] == (32, 48)
     torch.testing.assert_close(cropped, padded_by_hand, atol=1e-6, rtol=1e-6)
 
@@ -136,7 +137,7 @@ def test_initial_residuals_near_zero():
     m = create_model("test_trmd").eval()
     b, v = _inputs(1, 1, 3, 24, 24)
     with torch.no_grad():
-        assert m(b, v).abs().max() < 0.1
+        assert m(RENetInputs(b, v)).abs().max() < 0.1
 
 
 # --------------------------------------------------------------------------------------------
@@ -146,14 +147,14 @@ def test_initial_residuals_near_zero():
 def test_shape_errors():
     m = create_model("test_trmd", n=3, channels=1).eval()
     b, v = _inputs(1, 1, 3, 20, 20)
-    with pytest.raises(ShapeError, match="voxels"):
-        m(b, v[:, :4])  # 2N = 4, model wants 6
+    with pytest.raises(ShapeError, match="counts"):
+        m(RENetInputs(b, v[:, :4]))  # 2N = 4, model wants 6
     with pytest.raises(ShapeError, match="blurry"):
-        m(b.repeat(1, 3, 1, 1), v)  # RGB frame into a gray model
-    with pytest.raises(ShapeError, match="voxels"):
-        m(b, v[..., :19])
+        m(RENetInputs(b.repeat(1, 3, 1, 1), v))  # RGB frame into a gray model
+    with pytest.raises(ShapeError, match="counts"):
+        m(RENetInputs(b, v[..., :19]))
     with pytest.raises(ShapeError):
-        m(b[0], v[0])  # no batch axis
+        m(RENetInputs(b[0], v[0]))  # no batch axis
 
 
 # --------------------------------------------------------------------------------------------

@@ -11,8 +11,8 @@ from typer.testing import CliRunner
 
 from tests.helpers.data import ROOT
 from trmd_cli.cli.app import app
+from trmd_cli.models.weights import default_weights_path, read_metadata
 from trmd_cli.read import open_events, read_image
-from trmd_cli.weights import default_weights_path, read_metadata
 
 EX = ROOT / "examples"
 
@@ -26,11 +26,17 @@ def _psnr(a, b):
 
 def test_metadata_records_architecture_recipe_and_figures():
     # the shipped file must come from the recipe committed beside it
+    from trmd_cli.models import canonical_name, create_model
     from trmd_cli.train.recipe import load_recipe
 
     recipe = load_recipe(ROOT / "weights_recipe" / "recipe.toml")
     meta = read_metadata(None)
-    assert meta["architecture"] == recipe.model.name and meta["n"] == 3 and meta["channels"] == 1
+    # the same architecture, whichever of its names (an old one: models.renet.ALIASES) each uses
+    assert canonical_name(meta["architecture"]) == canonical_name(recipe.model.name)
+    built = create_model(recipe.model.name, n=recipe.model.n, channels=recipe.model.channels,
+                         **recipe.model.args)
+    assert meta["args"] == json.loads(json.dumps(built.args))
+    assert meta["n"] == 3 and meta["channels"] == 1
     assert meta["recipe"]["name"] == recipe.name
     val = meta["validation"]
     assert val["frames"] == 48 and val["trmd"]["psnr_mid"] > val["blurry"]["psnr_mid"]

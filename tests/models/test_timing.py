@@ -12,13 +12,14 @@ from safetensors.torch import load_file
 
 from tests.helpers.training import make_image_folder, recipe
 from trmd_cli.events import EventStream, Exposure
-from trmd_cli.models import count_macs, create_model
+from trmd_cli.models import RENetInputs, count_macs, create_model
 from trmd_cli.models.estimator import TrmdEstimator
+from trmd_cli.models.grow import TIMING_INPUTS, load_grown
+from trmd_cli.models.weights import load_weights, save_weights
 from trmd_cli.train.data import build_data
 from trmd_cli.train.loop import train
 from trmd_cli.train.recipe import apply_overrides
 from trmd_cli.voxel import scer_levels, scer_voxels
-from trmd_cli.weights import load_weights, save_weights
 
 
 def _one_pixel(ts, ps, width: int = 2) -> EventStream:
@@ -131,36 +132,37 @@ def _inputs(b: int = 2, h: int = 21, w: int = 30):
 def test_grown_timing_network_computes_what_the_weights_computed(refine):
     old = _trained_like(refine=refine)
     new = create_model("test_trmd", prior="edi_c", refine=refine, timing=True).eval()
-    grown = new.load_grown(old.state_dict())
-    assert sorted(grown) == sorted(new.TIMING_INPUTS)
+    grown = load_grown(new, old.state_dict())
+    assert sorted(grown.names) == sorted(TIMING_INPUTS) == sorted(grown.timing)
     blurry, vox, levels = _inputs()
     c = torch.tensor([0.2, 0.3])
+    x = RENetInputs(blurry, vox, levels=levels, contrast=c)
     with torch.no_grad():
-        torch.testing.assert_close(new(blurry, torch.cat([vox, levels], 1), c),
-                                   old(blurry, vox, c), atol=1e-6, rtol=0)
+        torch.testing.assert_close(new(x), old(x), atol=1e-6, rtol=0)
     # and the new inputs matter once their weights move
     with torch.no_grad():
         new.event_fe.conv1[0].weight[:, -3:] += 0.1
-        assert not torch.allclose(new(blurry, torch.cat([vox, levels], 1), c),
-                                  old(blurry, vox, c))
+        assert not torch.allclose(new(x), old(x))
 
 
 def test_timing_needs_a_prior_and_the_right_channels():
     with pytest.raises(Exception, match="timing needs a prior"):
         create_model("test_trmd", timing=True)
     net = create_model("test_trmd", prior="edi_c", timing=True).eval()
-    blurry, vox, _ = _inputs()
-    with pytest.raises(Exception, match="voxels has shape"):
-        net(blurry, vox, 0.2)  # the counts alone
+    blurry, vox, levels = _inputs()
+    with pytest.raises(Exception, match="sub-bin timing"):
+        net(RENetInputs(blurry, vox, contrast=0.2))  # the counts alone
+    with pytest.raises(Exception, match="levels has shape"):
+        net(RENetInputs(blurry, vox, levels=levels[:, :4], contrast=0.2))
     partial = _trained_like().state_dict()
     partial["head.weight"] = net.state_dict()["head.weight"]
     with pytest.raises(RuntimeError, match="lack the timing"):
-        net.load_grown(partial)
+        load_grown(net, partial)
 
 
 def test_macs_grow_by_the_timing_inputs_only():
-    a = create_model("trmd_small_edi_c_fr")
-    b = create_model("trmd_small_edi_c_fr_t")
+    a = create_model("trmd_small_prior", timing=False)
+    b = create_model("trmd_small_prior")
     h, w = 64, 80
     # blur_fe.conv1: +1 input (5×5, 8 out); event_fe.conv1: +12 inputs (5×5, 8 out);
     # head: +13 inputs (1×1, 6 out) — per pixel
@@ -172,7 +174,7 @@ def test_estimator_and_weights_round_trip(tmp_path):
     net = _trained_like(timing=True)
     path = save_weights(tmp_path / "w.safetensors", net, half=False)
     back, _ = load_weights(path)
-    assert back.timing and back.args["timing"] is True
+    assert back.needs.timing and back.args["timing"] is True
     est = TrmdEstimator.load(path, device="cpu")
     assert est.needs_timing
     rng = np.random.default_rng(0)
@@ -241,7 +243,7 @@ def test_eval_on_binned_data_says_the_timing_inputs_get_counts(tmp_path):
 
 
 def test_pipeline_hands_the_levels_to_a_timing_network(tmp_path):
-    from trmd_cli.pipeline import TrmdMethod
+    from trmd_cli.methods import TrmdMethod
     from trmd_cli.simulate import make_sample
 
     rng = np.random.default_rng(2)

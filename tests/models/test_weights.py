@@ -13,15 +13,15 @@ import pytest
 import torch
 
 from trmd_cli.errors import InputError, ShapeError, WeightsError
-from trmd_cli.models import create_model
+from trmd_cli.models import RENetInputs, create_model
 from trmd_cli.models.estimator import TrmdEstimator
-from trmd_cli.reconstruct import reconstruct
-from trmd_cli.weights import (
+from trmd_cli.models.weights import (
     load_weights,
     read_metadata,
     save_weights,
     weights_hash,
 )
+from trmd_cli.reconstruct import reconstruct
 
 RECIPE = {"data": "synthetic", "steps": 10, "lr": 3e-4}
 FIGURES = {"val_psnr_db": 31.5, "steps": 10}
@@ -51,7 +51,7 @@ def _run(m, h=19, w=23, seed=0):
     b = torch.rand(1, m.channels, h, w, generator=g)
     v = torch.randn(1, 2 * m.n, h, w, generator=g)
     with torch.no_grad():
-        return m(b, v)
+        return m(RENetInputs(b, v))
 
 
 # --------------------------------------------------------------------------------------------
@@ -96,6 +96,19 @@ def test_metadata_readable_without_loading(saved):
     assert meta["format"] == "trmd-weights" and meta["args"]["widths"] == [4, 8, 8, 8]
 
 
+def test_metadata_is_read_without_torch(saved):
+    import subprocess
+    import sys
+
+    _, p = saved
+    code = ("import sys; from trmd_cli.models.weights import describe_weights, read_metadata; "
+            f"d = describe_weights({str(p)!r}); m = read_metadata({str(p)!r}); "
+            "print(d['architecture'], m['n'], 'torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.split() == ["test_trmd", "3", "False"]
+
+
 def test_hash_is_content_hash(saved, tmp_path):
     m, p = saved
     h = weights_hash(p)
@@ -136,7 +149,7 @@ def test_missing_file(tmp_path):
 
 
 def test_no_shipped_weights_message(no_shipped_weights):
-    with pytest.raises(WeightsError, match="no shipped .*--weights"):
+    with pytest.raises(WeightsError, match="no shipped .*`weights`"):
         load_weights(None)
 
 
@@ -269,7 +282,7 @@ def test_estimator_gray(estimator, saved):
     # same numbers as model + reconstruct by hand
     with torch.no_grad():
         tb, tv = torch.from_numpy(blurry)[None, None], torch.from_numpy(vox)[None]
-        ref = reconstruct(tb, m(tb, tv))[0, :, 0].numpy()
+        ref = reconstruct(tb, m(RENetInputs(tb, tv)))[0, :, 0].numpy()
     np.testing.assert_allclose(out, ref, atol=1e-6)
     assert estimator.n == 3 and estimator.channels == 1
     assert estimator.weights_hash == weights_hash(p)

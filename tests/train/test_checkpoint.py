@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from trmd_cli.errors import FormatError
-from trmd_cli.models import create_model
+from trmd_cli.models import RENetInputs, create_model
 from trmd_cli.train.checkpoint import (
     is_checkpoint,
     load_checkpoint,
@@ -30,14 +30,14 @@ def trained_pair(steps: int = 2):
             for _ in range(steps + 1)]
     for b, v in data[:steps]:
         opt.zero_grad()
-        model(b, v).square().mean().backward()
+        model(RENetInputs(b, v)).square().mean().backward()
         opt.step()
     return model, opt, data[steps]
 
 
 def one_step(model, opt, batch):
     opt.zero_grad()
-    model(*batch).square().mean().backward()
+    model(RENetInputs(*batch)).square().mean().backward()
     opt.step()
 
 
@@ -119,9 +119,9 @@ def test_checkpoint_of_another_architecture_is_refused(tmp_path):
 
 
 def test_init_from_another_runs_checkpoint_takes_its_weights_only(tmp_path):
+    from trmd_cli.models.weights import save_weights
     from trmd_cli.train.loop import _load_init
     from trmd_cli.train.recipe import apply_overrides, load_recipe
-    from trmd_cli.weights import save_weights
 
     model, opt, _ = trained_pair(2)
     ck = save_checkpoint(tmp_path / "ck.safetensors", model=model, optimizer=opt,

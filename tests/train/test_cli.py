@@ -202,3 +202,57 @@ def test_image_folder_is_simulated_on_the_fly(setup, tmp_path):
     assert "trained 2/2 steps" in r.stdout and "validation PSNR" in r.stdout
     saved = json.loads((out / "recipe.json").read_text())
     assert saved["validation"].startswith("held out")
+
+
+def test_a_stopped_run_leaves_weights_every_command_accepts(setup, tmp_path):
+    """After --stop-after only checkpoint.safetensors exists: deblur, hfr and info take it as
+    weights (the run's weight average when it keeps one), and it computes what the network in
+    the checkpoint computes."""
+    import numpy as np
+    import torch
+
+    from trmd_cli.models.weights import describe_weights, load_weights
+    from trmd_cli.train.checkpoint import read_checkpoint_state
+    from trmd_cli.train.loop import build_model
+
+    data, rec = setup
+    out = tmp_path / "run"
+    r = runner.invoke(app, ["train", "--data", str(data), "--recipe", str(rec), "--out", str(out),
+                            "--stop-after", "3"])
+    assert r.exit_code == 0, r.output
+    ckpt = out / "checkpoint.safetensors"
+    assert ckpt.is_file() and not (out / "final.safetensors").exists()
+
+    model, meta = load_weights(ckpt)
+    assert meta["checkpoint"]["step"] == 3 and meta["n"] == 3
+    # the same tensors as the checkpoint's own model (no weight average in this recipe)
+    doc = read_checkpoint_state(ckpt)
+    ref = build_model(load_recipe(rec))
+    from safetensors.torch import load_file
+
+    ref.load_state_dict({k[6:]: v for k, v in load_file(str(ckpt)).items()
+                         if k.startswith("model/")})
+    for (ka, a), (kb, b) in zip(model.state_dict().items(), ref.state_dict().items()):
+        assert ka == kb and torch.equal(a, b), ka
+    assert doc["step"] == 3
+
+    d = describe_weights(ckpt)
+    assert d["architecture"] == "test_trmd" and d["checkpoint"]["step"] == 3
+    assert d["parameters"] == sum(p.numel() for p in ref.parameters())
+
+    img = tmp_path / "b.png"
+    ev = tmp_path / "e.npz"
+    from trmd_cli.events import Exposure, make_stream
+    from trmd_cli.write import write_events_npz, write_image
+
+    rng = np.random.default_rng(0)
+    write_image(img, rng.random((24, 32)).astype(np.float32))
+    t = np.sort(rng.integers(0, 10_000, 3000))
+    write_events_npz(ev, make_stream(rng.integers(0, 32, 3000), rng.integers(0, 24, 3000), t,
+                                     rng.integers(0, 2, 3000), 32, 24), [Exposure(0, 10_000)])
+    for cmd, target in (("deblur", tmp_path / "o"), ("hfr", tmp_path / "o2")):
+        r = runner.invoke(app, [cmd, str(img), str(ev), "-o", str(target), "--weights",
+                                str(ckpt), "--contrast", "0.2"])
+        assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["info", str(ckpt)])
+    assert r.exit_code == 0 and "test_trmd" in r.stdout, r.output

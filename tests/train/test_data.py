@@ -172,7 +172,7 @@ def test_build_data_trmd_h5_and_supervision_check(tmp_path):
                "loss.event_consistency=1")
     plan = build_data([unlabelled], r, supervised=False)
     assert "sharp" not in plan.train[0]
-    with pytest.raises(InputError, match="some --data sets"):
+    with pytest.raises(InputError, match="some `data` sets"):
         build_data([unlabelled, labelled], r, supervised=False)
     both = build_data([labelled, make_gopro_h5(tmp_path / "g.h5", k=2)],
                       recipe("data.crop=16", "data.val_fraction=0.0"))

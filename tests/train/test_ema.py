@@ -10,10 +10,10 @@ from safetensors.torch import load_file
 
 from tests.helpers.training import make_gopro_h5, recipe
 from trmd_cli.errors import InputError
+from trmd_cli.models.weights import load_weights
 from trmd_cli.train.ema import WeightAverage
 from trmd_cli.train.loop import train
 from trmd_cli.train.recipe import apply_overrides
-from trmd_cli.weights import load_weights
 
 
 @pytest.fixture(scope="module")
@@ -73,8 +73,8 @@ def test_written_weights_are_the_average_and_resume_is_exact(gopro, tmp_path):
             moved += int(not torch.allclose(ema[k], raw[k]))
     assert moved > 0  # the average is not the last iterate
 
-    b1 = train([gopro], recipe=r, run_dir=tmp_path / "b", session_steps=6)
-    assert b1.stopped == "session_limit"
+    b1 = train([gopro], recipe=r, run_dir=tmp_path / "b", stop_after_steps=6)
+    assert b1.stopped == "step_limit"
     b2 = train(None, run_dir=tmp_path / "b", resume=True)
     assert b2.steps == 10
     ck_b = load_file(str(tmp_path / "b" / "checkpoint.safetensors"))

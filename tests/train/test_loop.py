@@ -13,10 +13,10 @@ from safetensors.torch import load_file
 from tests.helpers.training import make_gopro_h5, read_log, recipe, write_trmd_h5
 from trmd_cli.errors import InputError, OutputExistsError, WeightsError
 from trmd_cli.metrics import psnr
+from trmd_cli.models.weights import load_weights
 from trmd_cli.train.data import build_data
 from trmd_cli.train.loop import LOG_COLUMNS, evaluate, lr_at, train
 from trmd_cli.train.recipe import apply_overrides
-from trmd_cli.weights import load_weights
 
 
 def model_tensors(run: Path) -> dict[str, torch.Tensor]:
@@ -65,8 +65,8 @@ def test_training_beats_the_blurry_frame_and_writes_its_outputs(gopro, tmp_path)
 def test_resume_gives_the_uninterrupted_result(gopro, tmp_path):
     r = recipe("train.steps=12", "train.val_every=6", "train.checkpoint_every=4")
     a = train([gopro], recipe=r, run_dir=tmp_path / "a")
-    b1 = train([gopro], recipe=r, run_dir=tmp_path / "b", session_steps=5)
-    assert b1.stopped == "session_limit" and b1.steps == 5 and b1.final_weights is None
+    b1 = train([gopro], recipe=r, run_dir=tmp_path / "b", stop_after_steps=5)
+    assert b1.stopped == "step_limit" and b1.steps == 5 and b1.final_weights is None
     b2 = train(None, run_dir=tmp_path / "b", resume=True)  # recipe and data from the run
     assert b2.stopped == "done" and b2.steps == 12
     ta, tb = model_tensors(tmp_path / "a"), model_tensors(tmp_path / "b")
@@ -82,19 +82,19 @@ def test_resume_gives_the_uninterrupted_result(gopro, tmp_path):
 def test_resume_refuses_changed_recipe_or_data_and_an_existing_run(gopro, tmp_path):
     r = recipe("train.steps=2", "train.val_every=2")
     train([gopro], recipe=r, run_dir=tmp_path / "run")
-    with pytest.raises(OutputExistsError, match="--resume"):
+    with pytest.raises(OutputExistsError, match="`resume=True`"):
         train([gopro], recipe=r, run_dir=tmp_path / "run")
     with pytest.raises(InputError, match="optim.lr"):
         train(None, recipe=apply_overrides(r, ["optim.lr=0.5"]), run_dir=tmp_path / "run",
               resume=True)
     other = make_gopro_h5(tmp_path / "other.h5", k=4)
-    with pytest.raises(InputError, match="--data differs"):
+    with pytest.raises(InputError, match="`data` differs"):
         train([other], run_dir=tmp_path / "run", resume=True)
     # speed and length settings may change
     res = train(None, run_dir=tmp_path / "run", resume=True,
                 overrides=["train.steps=4", "train.log_every=1"])
     assert res.steps == 4 and any("length changed" in n for n in res.notes)
-    with pytest.raises(InputError, match="--init-weights"):
+    with pytest.raises(InputError, match="`init_weights`"):
         train(None, run_dir=tmp_path / "run", resume=True, init_weights=tmp_path / "x")
 
 
@@ -112,6 +112,7 @@ class Ticker:
     def __init__(self, clock: FakeClock) -> None:
         self.clock = clock
 
+    def phase(self, message): ...
     def start(self, **_): ...
     def validated(self, **_): ...
     def note(self, message): ...
@@ -169,3 +170,20 @@ def test_init_weights_start_from_the_given_weights(gopro, tmp_path):
 def test_too_little_data_for_a_batch(gopro, tmp_path):
     with pytest.raises(InputError, match="no full batch"):
         train([gopro], recipe=recipe("data.batch_size=64"), run_dir=tmp_path / "run")
+
+
+def test_the_reporter_hears_what_the_run_does_before_its_first_step(gopro, tmp_path):
+    """Building the data and the network can take minutes: the reporter is told at once."""
+    heard: list[str] = []
+
+    class Recorder(Ticker):
+        def phase(self, message):
+            heard.append(message)
+
+        def start(self, **_):
+            heard.append("start")
+
+    train([gopro], recipe=recipe("train.steps=2"), run_dir=tmp_path / "r",
+          reporter=Recorder(FakeClock()))
+    assert heard[:3] == ["preparing the training and validation data", "building test_trmd",
+                         "start"]

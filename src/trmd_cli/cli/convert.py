@@ -42,8 +42,10 @@ def convert(
             with H5Writer(output, rec.width, rec.height) as w:
                 for chunk in rec.iter_chunks():
                     w.add_events(chunk)
+                skipped = 0
                 for fr in rec.frames():
                     if fr.exposure is None:
+                        skipped += 1
                         continue
                     if fr.image.shape[:2] != (rec.height, rec.width):
                         raise InputError(
@@ -51,6 +53,12 @@ def convert(
                             f"sensor is {rec.width}x{rec.height}", path=source,
                             hint="convert to .npz (events and windows only) instead")
                     w.add_frame(fr.image, fr.exposure)
+                windows = rec.stored_windows()
+                if windows:
+                    w.add_windows(windows)
+                if skipped:
+                    warn(f"{skipped} frame(s) without an exposure window were not converted "
+                         "(the trmd HDF5 layout stores frames with their windows)")
         else:
             stream = rec.events()
             windows = rec.frame_exposures() or rec.stored_windows()

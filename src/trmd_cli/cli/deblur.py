@@ -1,10 +1,11 @@
 """`trmd deblur`: blurry frame(s) + events → 2N+1 sharp frames per exposure.
 
-Inputs (see :func:`trmd_cli.pipeline.open_inputs`)::
+Inputs (see :func:`trmd_cli.read.inputs.open_inputs`)::
 
     trmd deblur BLURRY.png EVENTS -o OUT/            # OUT/frame_000.png … sharp.png …
     trmd deblur RECORDING.aedat4|.h5 -o OUT/         # OUT/<frame>/… for every stored frame
     trmd deblur IMAGES_DIR EVENTS|EVENTS_DIR -o OUT/ # frames folder, paired by frame number
+    trmd deblur IMAGES_DIR BINS_FILE -o OUT/         # binned events (.mat/.npz event_bins, .npy)
 
 A colour blurry frame with mono events is deblurred per channel with the same event ratio
 (events carry no colour). Output values above 1 are clipped when written (reported).
@@ -33,8 +34,8 @@ from .options import (
     read_options,
 )
 
-#: a literal so --help need not import the pipeline; a test keeps it equal to
-#: pipeline.DEFAULT_METHOD
+#: a literal so --help need not import the methods; a test keeps it equal to
+#: methods.DEFAULT_METHOD
 _DEFAULT_METHOD_HELP = "trmd"
 
 Method = Annotated[str | None, typer.Option(
@@ -86,15 +87,15 @@ def choose_method(method: str | None, weights: Path | None, default: str) -> str
 
 def method_config(method: str | None, weights: Path | None, n: int | None, contrast: str,
                   hot_pixels: bool, device: str, threads: int | None, bit_depth: int,
-                  precision: str = "auto"):
+                  precision: str = "auto", settle_contrast: bool = False):
     """The options deblur and hfr share, checked and turned into a ``MethodConfig``."""
     from ..errors import InputError
-    from ..pipeline import DEFAULT_METHOD, MethodConfig
+    from ..methods import DEFAULT_METHOD, MethodConfig
 
     config = MethodConfig(method=choose_method(method, weights, DEFAULT_METHOD), n=n,
                           contrast=parse_contrast(contrast), hot_pixels=hot_pixels,
                           weights=weights, device=device, threads=threads,
-                          precision=precision)
+                          precision=precision, settle_contrast=settle_contrast)
     if bit_depth not in (8, 16):
         raise InputError(f"--bit-depth must be 8 or 16, got {bit_depth}",
                          hint="use --bit-depth 8 or --bit-depth 16")
@@ -103,7 +104,7 @@ def method_config(method: str | None, weights: Path | None, n: int | None, contr
 
 def deblur(
     inputs: Annotated[list[Path], typer.Argument(
-        help="BLURRY EVENTS, or RECORDING, or IMAGES_DIR EVENTS|EVENTS_DIR.",
+        help="BLURRY EVENTS, or RECORDING, or IMAGES_DIR EVENTS|EVENTS_DIR|BINS_FILE.",
         show_default=False)],
     output: Annotated[Path, typer.Option("--output", "-o", help="Output folder.")],
     method: Method = None,
@@ -133,11 +134,12 @@ def deblur(
     from rich.progress import Progress
 
     from .. import __version__
+    from ..deblur import ContrastNotes, binned_note, deblur_frames
     from ..errors import InputError
-    from ..pipeline import deblur_frames, make_method, open_inputs
-    from ..pipeline import write_result_folder as write_folder
+    from ..methods import make_method
+    from ..read.inputs import open_inputs
     from ..video import VIDEO_SUFFIXES, VideoWriter, check_video_path
-    from ..write import atomic_dir, check_output
+    from ..write import atomic_dir, check_output, write_json, write_result_folder
 
     # every option is checked before any file is opened or written
     if len(inputs) > 2:
@@ -177,8 +179,13 @@ def deblur(
             "contrast_mode": "given" if config.contrast is not None else "auto",
             "bit_depth": bit_depth,
         }
+        said = [binned_note(ins.source, est)] if ins.binned else []
+        if ins.binned:
+            del meta["time_offset_us"]
+            meta.update(binned_meta(ins.source))
         summary: list[dict] = []
         clipped: list[float] = []
+        notes = ContrastNotes()
         vw = VideoWriter(video, fps) if video is not None else None
         try:
             with atomic_dir(output) as tmp, Progress(
@@ -188,12 +195,13 @@ def deblur(
                 for res in deblur_frames(ins.source, est):
                     for w in res.warnings:
                         warn(w)
+                    notes.add(res)
                     folder = tmp
                     if not ins.single:
                         folder = tmp / _folder_name(res.name, res.index)
                         folder.mkdir()
-                    info = write_folder(folder, res, bit_depth=bit_depth, compare=compare,
-                                        meta=meta)
+                    info = write_result_folder(folder, res, bit_depth=bit_depth,
+                                               compare=compare, meta=meta)
                     summary.append(info)
                     clipped.append(info["clipped_fraction"])
                     if vw is not None:
@@ -203,8 +211,6 @@ def deblur(
                 if not summary:
                     raise InputError("no frame to deblur", hint="check the inputs")
                 if not ins.single:
-                    from ..write import write_json
-
                     write_json(tmp / "meta.json", {**meta, "frames": summary})
                 if vw is not None:
                     vw.close()
@@ -213,7 +219,16 @@ def deblur(
             if vw is not None:
                 vw.abort()
 
+    for line in [*said, *notes.lines()]:
+        warn(line)
     _report(summary, clipped, est.name, est.n, output, video, ins.single)
+
+
+def binned_meta(source) -> dict:
+    """What meta.json says about binned events (a ``BinnedSource``): no clock, no µs."""
+    return {"binned": True, "bins_per_frame": source.bins_per_frame,
+            "time": "binned events have no event clock: instants are fractions of each "
+                    "exposure (0 = start, 1 = end)"}
 
 
 def _folder_name(name: str, index: int) -> str:
@@ -235,9 +250,11 @@ def _report(summary: list[dict], clipped: list[float], method: str, n: int, outp
             typer.echo(f"contrast threshold c ({kind}, per frame): median {np.median(used):.3f}, "
                        f"range {min(used):.3f}–{max(used):.3f}; each frame's value is in its "
                        "meta.json")
-    frac = float(np.mean(clipped)) if clipped else 0.0
-    if frac > 0:
-        warn(f"{100 * frac:.2f} % of output values were above 1 and were clipped to white")
+    from ..write import clipped_message
+
+    said = clipped_message(float(np.mean(clipped)) if clipped else 0.0)
+    if said:
+        warn(said)
     passed = sum(s["passthrough"] for s in summary)
     frames = summary[0]["frames"] if summary else 2 * n + 1
     what = "1 frame" if single else f"{len(summary)} frames"

@@ -35,7 +35,8 @@ _NOGT_COLUMNS = (("sharpness", "sharpness", "{:.5f}"), ("noise", "noise σ", "{:
 def eval_command(
     datasets: Annotated[list[Path], typer.Argument(
         help="Datasets: trmd HDF5 (from `trmd simulate`), GOPRO-style HDF5, a folder with "
-             "blurry/ + events + sharp/, or any recording with frames (no ground truth).")],
+             "blurry/ + events (or a bins file) + sharp/, or any recording with frames (no "
+             "ground truth).")],
     methods: Annotated[str, typer.Option(
         "--methods", help="Comma-separated: blurry, edi, edi-true-c, trmd.")
     ] = "blurry,edi,trmd",
@@ -151,6 +152,8 @@ def _print_tables(report) -> None:
     from rich.console import Console
     from rich.table import Table
 
+    from ..evaluate import NO_GT_READING
+
     console = Console()
     lpips = any(f.lpips_mid is not None for d in report.datasets for m in d.methods
                 for f in m.frames)
@@ -159,7 +162,8 @@ def _print_tables(report) -> None:
             else _NOGT_COLUMNS
         kind = "ground truth" if d.ground_truth else "no ground truth"
         t = Table(title=f"{d.path} ({d.kind}, {kind}, N={d.n}, {d.size[0]}x{d.size[1]})",
-                  title_justify="left")
+                  title_justify="left",
+                  caption=None if d.ground_truth else NO_GT_READING, caption_justify="left")
         t.add_column("method")
         for _, head, _ in cols:
             t.add_column(head, justify="right")

@@ -3,15 +3,19 @@
     trmd hfr BLURRY1.png BLURRY2.png … EVENTS -o slowmo.mp4
     trmd hfr RECORDING.aedat4|.h5 -o slowmo.gif
     trmd hfr IMAGES_DIR EVENTS|EVENTS_DIR -o frames/
+    trmd hfr IMAGES_DIR BINS_FILE -o frames/
 
 Each exposure gives ``--per-exposure K`` frames (default 2N+1, ends included); the gaps between
 exposures are filled at the same time step from the events (forward from one exposure, backward
 from the next, cross-faded), so the video is continuous. ``--fps`` is only the playback rate.
+Binned events have no event times: the stream is the exposures' 2N+1 frames in order, without
+gap filling, and timestamps.txt gives each frame's fraction of its exposure.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -26,6 +30,7 @@ from .deblur import (
     NOpt,
     TimeOffset,
     Weights,
+    binned_meta,
     method_config,
 )
 from .options import (
@@ -45,7 +50,7 @@ from .options import (
 
 def hfr(
     inputs: Annotated[list[Path], typer.Argument(
-        help="BLURRY… EVENTS, or RECORDING, or IMAGES_DIR EVENTS|EVENTS_DIR.",
+        help="BLURRY… EVENTS, or RECORDING, or IMAGES_DIR EVENTS|EVENTS_DIR|BINS_FILE.",
         show_default=False)],
     output: Annotated[Path, typer.Option(
         "--output", "-o", help="slowmo.mp4, slowmo.gif, or a folder for PNG frames.")],
@@ -80,19 +85,26 @@ def hfr(
     from rich.progress import Progress
 
     from .. import __version__
+    from ..deblur import ContrastNotes, binned_note, deblur_frames
     from ..errors import InputError
-    from ..pipeline import (
-        clipped_fraction,
-        deblur_frames,
-        hfr_stream,
-        make_method,
-        open_inputs,
-    )
+    from ..hfr import check_time_order, hfr_stream
+    from ..methods import make_method
+    from ..read.inputs import open_inputs
     from ..video import VIDEO_SUFFIXES, VideoWriter
-    from ..write import atomic_dir, check_output, write_image, write_json, write_text
+    from ..write import (
+        atomic_dir,
+        check_output,
+        clipped_fraction,
+        clipped_message,
+        fmt_fraction,
+        write_image,
+        write_json,
+        write_text,
+    )
 
+    # the gaps are filled by event integration, which needs c even where the method does not
     config = method_config(method, weights, n, contrast, hot_pixels, device, threads,
-                           bit_depth, precision)
+                           bit_depth, precision, settle_contrast=fill_gaps)
     if not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 30")
     offset = parse_duration_us(time_offset) if time_offset else 0
@@ -106,23 +118,24 @@ def hfr(
                      exposure=exposure, offset_us=offset) as ins:
         for w in ins.warnings:
             warn(w)
-        starts = [e.start_us for e in ins.source.exposures()]
-        if any(b < a for a, b in zip(starts, starts[1:])):  # noqa: B905 - offset pairs
-            raise InputError("the frames are not in time order", path=inputs[0],
-                             hint="name the frames so that their numbers follow time")
+        if ins.binned:  # in sorted order by definition; no gaps to fill, so no c for them
+            config = replace(config, settle_contrast=False)
+        else:
+            check_time_order(ins.source.exposures(), inputs[0])
         est = make_method(config)
-        if hasattr(est, "always_contrast"):  # TRMD: the gaps are filled with EDI's model
-            est.always_contrast = fill_gaps
-        notes: list[str] = []
+        notes: list[str] = [binned_note(ins.source, est, stream=True)] if ins.binned else []
+        contrast_notes = ContrastNotes()
         contrasts: list[float] = []
         clipped: list[float] = []
         count = {"exposure": 0, "gap": 0}
-        lines = ["# file time_us kind source"]
+        lines = ["# file fraction kind source (fraction of the source's exposure: binned "
+                 "events, no event clock)" if ins.binned else "# file time_us kind source"]
 
         def results():
             for res in deblur_frames(ins.source, est, per_exposure=per_exposure):
                 for w in res.warnings:
                     warn(w)
+                contrast_notes.add(res)
                 if res.estimate.contrast is not None:
                     contrasts.append(res.estimate.contrast)
                 clipped.append(clipped_fraction(res.frames))
@@ -144,18 +157,24 @@ def hfr(
                     for i, fr in enumerate(stream):
                         name = f"{i:06d}.png"
                         write_image(tmp / name, fr.image, bit_depth)
-                        lines.append(f"{name} {fr.t_us:.3f} {fr.kind} {fr.source}")
+                        when = fmt_fraction(fr.fraction) if fr.t_us is None else \
+                            f"{fr.t_us:.3f}"
+                        lines.append(f"{name} {when} {fr.kind} {fr.source}")
                         count[fr.kind] += 1
                     write_text(tmp / "timestamps.txt", "\n".join(lines) + "\n")
-                    write_json(tmp / "meta.json", {
+                    meta = {
                         "tool": f"trmd {__version__}", "method": est.name, "n": est.n,
                         "weights_hash": est.weights_hash, "inputs": ins.paths,
                         "precision": est.precision,
                         "per_exposure": per_exposure or 2 * est.n + 1, "fps": fps,
                         "fill_gaps": fill_gaps, "time_offset_us": offset,
-                        "contrast": contrasts, "frames": count})
+                        "contrast": contrasts, "frames": count}
+                    if ins.binned:
+                        del meta["time_offset_us"]
+                        meta.update(fill_gaps=False, **binned_meta(ins.source))
+                    write_json(tmp / "meta.json", meta)
 
-    for note in notes:
+    for note in [*contrast_notes.lines(), *notes]:
         warn(note)
     if contrasts:
         import numpy as np
@@ -163,9 +182,9 @@ def hfr(
         kind = "given" if config.contrast is not None else "estimated"
         typer.echo(f"contrast threshold c ({kind}): median {np.median(contrasts):.3f}, range "
                    f"{min(contrasts):.3f}–{max(contrasts):.3f}")
-    if clipped and max(clipped) > 0:
-        warn(f"{100 * sum(clipped) / len(clipped):.2f} % of output values were above 1 and "
-             "were clipped to white")
+    said = clipped_message(sum(clipped) / len(clipped) if clipped else 0.0)
+    if said:
+        warn(said)
     total = count["exposure"] + count["gap"]
     typer.echo(f"wrote {output}: {total} frames ({count['exposure']} from exposures, "
                f"{count['gap']} filling gaps) at {fps:g} fps, {est.name} N={est.n}")

@@ -62,7 +62,7 @@ def info(
 
 
 def _weights_info(file: Path, as_json: bool) -> None:
-    from ..weights import describe_weights
+    from ..models.weights import describe_weights
 
     d = describe_weights(file)
     if as_json:
@@ -72,8 +72,14 @@ def _weights_info(file: Path, as_json: bool) -> None:
     from rich.table import Table
 
     t = Table(title=str(file), show_header=False, title_justify="left")
-    t.add_row("weights", f"{d['architecture']}, {d['parameters']:,} parameters, {d['dtype']}, "
+    name = d["architecture"] + (f" (recorded as {d['recorded_as']})" if d["recorded_as"] else "")
+    t.add_row("weights", f"{name}, {d['parameters']:,} parameters, {d['dtype']}, "
                          f"{d['size_mib']} MiB, sha256 {d['sha256']}")
+    if d["checkpoint"]:
+        ck = d["checkpoint"]
+        t.add_row("checkpoint", f"step {ck.get('step')} of a training run; its "
+                                f"{'weight average' if ck.get('weights') == 'ema' else 'model'} "
+                                "is what deblur, hfr and eval use")
     t.add_row("frames", f"N = {d['n']} ({2 * int(d['n']) + 1} latent frames), "
                         f"{d['channels']} channel(s)")
     for i, need in enumerate(d["inputs"]):

@@ -29,6 +29,12 @@ class _RichReporter:
         self._steps = 0
         self._rate = 0.0
 
+    def phase(self, message: str) -> None:
+        # on a terminal only: piped, stderr keeps its promise of one line for bad input
+        if self.show_bar:
+            err.print(f"[dim]train: {message}…[/]", soft_wrap=True, highlight=False,
+                      markup=True)
+
     def start(self, *, total: int, done: int, info: dict[str, Any]) -> None:
         from rich.progress import (
             BarColumn,
@@ -86,6 +92,7 @@ class _RichReporter:
 class _Quiet:
     """Reporter of the processes other than rank 0."""
 
+    def phase(self, message: str) -> None: ...
     def start(self, **_: Any) -> None: ...
     def step(self, **_: Any) -> None: ...
     def validated(self, **_: Any) -> None: ...
@@ -155,11 +162,11 @@ def train(
     result = run_training(data, recipe=rec, run_dir=out, resume=resume,
                           init_weights=init_weights, overrides=overrides or None,
                           overwrite=overwrite, device=device, reporter=reporter,
-                          session_steps=stop_after)
+                          stop_after_steps=stop_after)
     if not is_main:
         return
     why = {"done": "all steps done", "time_budget": "time budget used up",
-           "session_limit": "stopped as asked (--stop-after); continue with --resume"
+           "step_limit": "stopped as asked (--stop-after); continue with --resume"
            }[result.stopped]
     typer.echo(f"trained {result.steps}/{result.total_steps} steps ({result.epochs:.2f} epochs) "
                f"in {_hms(result.seconds)}: {why}")

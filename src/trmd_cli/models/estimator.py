@@ -16,8 +16,9 @@ import torch
 from ..errors import InputError, ShapeError
 from ..precision import autocast, precision_name, resolve_precision
 from ..reconstruct import reconstruct
-from ..weights import load_weights, resolve_device, weights_hash
+from .inputs import RENetInputs
 from .renet import RENet
+from .weights import default_weights_path, load_weights, resolve_device, weights_hash
 
 __all__ = ["TrmdEstimator"]
 
@@ -30,10 +31,20 @@ class TrmdEstimator:
     channel follows the same motion. An RGB model (channels = 3) given a gray frame sees it
     replicated to three channels and returns the mean of its three outputs.
 
-    Example::
+    Example (the bundled example, run from the repository's root)::
 
-        est = TrmdEstimator.load("best.safetensors", threads=2)
-        latent = est(blurry, scer_voxels(events, exposure, est.n))  # (2N+1, H, W)
+        >>> from trmd_cli.read import open_events, read_image
+        >>> from trmd_cli.threshold import estimate_contrast
+        >>> from trmd_cli.voxel import scer_levels, scer_voxels
+        >>> blurry = read_image("examples/blurry.png")
+        >>> with open_events("examples/events.npz") as rec:
+        ...     exposure = rec.stored_windows()[0]
+        ...     events = rec.events(exposure.start_us, exposure.end_us + 1)
+        >>> est = TrmdEstimator.load(threads=2)  # the shipped weights
+        >>> c = estimate_contrast(blurry, events, exposure) if est.needs_contrast else None
+        >>> levels = scer_levels(events, exposure, est.n) if est.needs_timing else None
+        >>> est(blurry, scer_voxels(events, exposure, est.n), c, levels).shape
+        (7, 260, 346)
     """
 
     def __init__(self, model: RENet, meta: dict[str, Any] | None = None,
@@ -70,11 +81,7 @@ class TrmdEstimator:
                 raise InputError(f"threads must be ≥ 1, got {threads}")
             torch.set_num_threads(threads)
         model, meta = load_weights(weights, device=str(resolve_device(device)), expect_n=expect_n)
-        path = weights
-        if path is None:
-            from ..weights import default_weights_path
-
-            path = default_weights_path()
+        path = default_weights_path() if weights is None else weights
         return cls(model, meta, weights_hash(path), precision=precision)
 
     @property
@@ -105,13 +112,13 @@ class TrmdEstimator:
     @property
     def needs_contrast(self) -> bool:
         """The network takes the sensor's contrast threshold with every frame."""
-        return self.model.needs_contrast
+        return self.model.needs.contrast
 
     @property
     def needs_timing(self) -> bool:
         """True when the network also takes the voxels' sub-bin timing
         (:func:`trmd_cli.voxel.scer_levels`, the ``levels`` argument)."""
-        return bool(getattr(self.model, "timing", False))
+        return self.model.needs.timing
 
     def __call__(self, blurry: np.ndarray, voxels: np.ndarray,
                  contrast: float | None = None, levels: np.ndarray | None = None) -> np.ndarray:
@@ -147,17 +154,17 @@ class TrmdEstimator:
         if voxels.shape[0] != 2 * self.n:
             raise InputError(f"got {voxels.shape[0]} voxel channels but the model was trained for "
                              f"N = {self.n} ({2 * self.n} channels)",
-                             hint=f"voxelize with --n {self.n}, or use weights trained for "
+                             hint=f"voxelize with `n={self.n}`, or use weights trained for "
                              f"N = {voxels.shape[0] // 2}")
         if not (np.isfinite(blurry).all() and np.isfinite(voxels).all()):
             raise InputError("the frame or the voxels contain NaN or infinite values")
+        lv: np.ndarray | None = None
         if self.needs_timing:
             lv = voxels if levels is None else np.asarray(levels, dtype=np.float32)
             if lv.shape != voxels.shape:
                 raise ShapeError(f"levels have shape {lv.shape}, the voxels {voxels.shape}")
             if not np.isfinite(lv).all():
                 raise InputError("the voxel levels contain NaN or infinite values")
-            voxels = np.concatenate([voxels, lv], 0)
 
         rgb = blurry.ndim == 3
         # model input: (batch, C_model, H, W); a batch of 3 runs a gray model per colour channel
@@ -172,9 +179,12 @@ class TrmdEstimator:
 
         with torch.inference_mode():
             tb = torch.from_numpy(np.ascontiguousarray(b)).to(self.device)
-            tv = torch.from_numpy(voxels).to(self.device)[None].expand(b.shape[0], -1, -1, -1)
+            batch = b.shape[0]
+            tv = torch.from_numpy(voxels).to(self.device)[None].expand(batch, -1, -1, -1)
+            tl = None if lv is None else \
+                torch.from_numpy(lv).to(self.device)[None].expand(batch, -1, -1, -1)
             with autocast(self.device, self.amp_dtype):
-                residuals = self.model(tb, tv, contrast)
+                residuals = self.model(RENetInputs(tb, tv, levels=tl, contrast=contrast))
             latent = reconstruct(tb, residuals.float())  # (batch, 2N+1, C, H, W)
             out = latent.float().cpu().numpy()
 

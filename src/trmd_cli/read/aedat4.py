@@ -131,7 +131,7 @@ class Aedat4Recording(ChunkedRecording):
         main = streams[self._ev_id if ev_ids else self._fr_id]
         width, height = main.get("width"), main.get("height")
         if not width or not height:
-            width, height = (options.sensor or (None, None))
+            width, height = (options.sensor or options.frame_size or (None, None))
         super().__init__(path, "aedat4", width, height, warnings)
         self._frame_meta: list[dict[str, Any]] = []
         # the first pass decodes every packet: a damaged one fails here, before any output

@@ -26,12 +26,16 @@ class ReadOptions:
         time_unit: ``"s" | "ms" | "us" | "ns"`` overriding the format's own rule (None = default:
             integer = µs, float = seconds).
         sensor: (width, height) for files that store no size.
+        frame_size: (width, height) of the frames given with the events: the sensor's size
+            when neither ``sensor`` nor the file states one (a frame's size is the sensor's;
+            the largest event coordinate only bounds it).
     """
 
     columns: tuple[str, ...] | None = None
     one_based: bool = False
     time_unit: str | None = None
     sensor: tuple[int, int] | None = None
+    frame_size: tuple[int, int] | None = None
 
 
 @dataclass(frozen=True, eq=False)

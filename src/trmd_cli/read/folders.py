@@ -18,6 +18,10 @@ stays bounded by one window whatever the length of the sequence. Three layouts:
 * **frames stored in the recording** (AEDAT4 APS frames, HDF5 ``images`` with exposures):
   :func:`frames_from_recording`.
 
+A :class:`BinnedSource` is the twin for binned events (:mod:`trmd_cli.read.bins`): a folder of
+frames with one bins file, yielding :class:`BinnedWindow` items — a frame and the signed counts
+of the equal bins spanning its exposure, without event times (:func:`open_binned_folder`).
+
 Image size is the sensor size for event files that store none (eSL-Net .mat: 346×260).
 """
 
@@ -39,6 +43,9 @@ __all__ = [
     "FrameWindow",
     "FrameEntry",
     "FrameSource",
+    "BinnedWindow",
+    "BinnedSource",
+    "open_binned_folder",
     "open_frame_folder",
     "frames_from_recording",
     "pair_folders",
@@ -295,6 +302,107 @@ class FrameSource:
         self.close()
 
 
+@dataclass(frozen=True, eq=False)
+class BinnedWindow:
+    """One frame and the binned events of its exposure (no event times).
+
+    Attributes:
+        frame: the image (float32 [0, 1], (H, W) or (H, W, 3)); ``exposure`` is None: binned
+            data has no event clock.
+        bins: (B, H, W) signed counts of the B equal bins spanning the exposure, in time order.
+    """
+
+    frame: Frame
+    bins: np.ndarray
+
+
+class BinnedSource:
+    """Frames with the binned events of their exposures, one frame at a time: the i-th image
+    in sorted order with the i-th block of bins (see :mod:`trmd_cli.read.bins`).
+
+    Attributes:
+        images: the frames' files, in order. binned: the bins
+            (:class:`~trmd_cli.read.bins.BinnedEvents`). width, height: the frames' size.
+        warnings: things the user should hear.
+    """
+
+    #: no recording to fill gaps between exposures from (the bins hold only the exposures)
+    recording = None
+
+    def __init__(self, images: Sequence[Path], binned, warnings: list[str] | None = None
+                 ) -> None:
+        from .bins import BinnedEvents
+
+        self.images = list(images)
+        self.binned: BinnedEvents = binned
+        self.width, self.height = binned.width, binned.height
+        self.warnings = [] if warnings is None else warnings
+        if len(self.images) != binned.frames:
+            raise InputError(f"{len(self.images)} images for the bins of {binned.frames} frames",
+                             path=binned.path, hint="give one image per frame")
+
+    @property
+    def path(self) -> Path:
+        """The bins file."""
+        return self.binned.path
+
+    @property
+    def bins_per_frame(self) -> int:
+        return self.binned.bins_per_frame
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def names(self) -> list[str]:
+        return [p.stem for p in self.images]
+
+    def subset(self, positions: Sequence[int]) -> BinnedSource:
+        """The same source restricted to the frames at ``positions`` (0-based, in order)."""
+        from .bins import BinnedEvents
+
+        keep = sorted(set(int(i) for i in positions))
+        if keep and (keep[0] < 0 or keep[-1] >= len(self.images)):
+            raise InputError(f"frame positions {keep[0]}..{keep[-1]} outside 0..{len(self) - 1}")
+        return BinnedSource([self.images[i] for i in keep],
+                            BinnedEvents(self.binned.path, self.binned.counts[keep]),
+                            list(self.warnings))
+
+    def __iter__(self) -> Iterator[BinnedWindow]:
+        for i, path in enumerate(self.images):
+            img = read_image(path)
+            check_frame_matches(img, self.width, self.height, path)
+            n = frame_number(path)
+            yield BinnedWindow(Frame(img, None, n if n is not None else i, path.stem),
+                               self.binned.frame(i))
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> BinnedSource:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_binned_folder(images: str | Path, bins: str | Path) -> BinnedSource:
+    """Frames from a folder with the binned events of one bins file, paired in sorted order.
+
+    Raises:
+        InputError: no images; the bins' frame count, bins per frame or size do not fit the
+            images; NaN or fractional counts. FormatError: an unreadable bins file.
+    """
+    from .bins import read_bins
+
+    images = Path(images)
+    paths = list_images(images)
+    if not paths:
+        raise InputError("the folder holds no images", path=images,
+                         hint="frames must be PNG, JPG or TIFF files")
+    h, w = read_image(paths[0]).shape[:2]
+    return BinnedSource(paths, read_bins(bins, len(paths), (w, h)))
+
+
 def frames_from_recording(recording: Recording) -> FrameSource:
     """Frames stored in an event file (AEDAT4 APS frames, HDF5 images) with their events.
 
@@ -305,9 +413,15 @@ def frames_from_recording(recording: Recording) -> FrameSource:
     """
     exposures = recording.frame_exposures()
     if not exposures:
-        raise InputError("the file stores no frames with exposure times", path=recording.path,
+        if next(iter(recording.frames()), None) is None:
+            raise InputError("the file holds events but no frames: deblurring needs the "
+                             "blurry frames too", path=recording.path,
+                             hint="give the blurry image before it (BLURRY EVENTS), or a "
+                                  "frames folder (IMAGES_DIR EVENTS)")
+        raise InputError("the file stores frames but not their exposure times",
+                         path=recording.path,
                          hint="give the frames as a folder (with Exposure_start.txt / "
-                              "Exposure_end.txt) or pass `exposure=(T0, T1)`")
+                              "Exposure_end.txt) or one image with `exposure=(T0, T1)`")
     entries = [FrameEntry(k, f"{k:06d}", e) for k, e in enumerate(exposures)]
     return FrameSource(entries, recording.width, recording.height, recording=recording,
                        stored_frames=True, warnings=list(recording.warnings))

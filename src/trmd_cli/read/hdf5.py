@@ -5,7 +5,7 @@ Layouts (docs/formats.md):
 - trmd (root attr ``format="trmd"``): ``events/x,y`` uint16, ``events/t`` int64 µs, ``events/p``
   int8 ±1, root attrs ``width``, ``height``; optional ``frames/blurry`` (K, H, W[, 3]) float [0,1],
   ``frames/exposure_start|exposure_end`` (K,) int64 µs, ``frames/sharp`` (K, 2N+1, H, W[, 3]),
-  ``frames/contrast`` (K,).
+  ``frames/contrast`` (K,); ``windows/start_us|end_us`` (K,) int64 µs: windows without frames.
 - event_utils / E2VID: ``events/xs, ys, ts, ps`` (ts float seconds), root attr
   ``sensor_resolution`` (H, W).
 - DSEC: ``events/x, y, t, p`` with t in µs relative to the root dataset ``t_offset``; Blosc
@@ -123,6 +123,8 @@ class HDF5Recording(Recording):
                 height, width = (int(v) for v in f.attrs["sensor_resolution"][:2])
             elif "frames/blurry" in f:
                 height, width = f["frames/blurry"].shape[1:3]
+            elif options.frame_size is not None:
+                width, height = options.frame_size
         except (TypeError, ValueError, IndexError):
             raise FormatError("the stored sensor size is not two whole numbers", path=path,
                               hint="pass `sensor=(W, H)`") from None
@@ -254,6 +256,26 @@ class HDF5Recording(Recording):
                     f"types {s.dtype}/{e.dtype}, expected integer µs" if not ok else
                     f"window {int(bad[0])} [{s[bad[0]]}, {e[bad[0]]}] µs is empty or reversed")
             raise FormatError(f"frames/exposure_start/end: {what}", path=self.path,
+                              hint="repair the stored windows, or give `exposure=(T0, T1)`")
+        return [Exposure(int(a), int(b)) for a, b in zip(s, e, strict=True)]
+
+    def stored_windows(self) -> list[Exposure]:
+        if not self._has("windows/start_us"):
+            return []
+        try:
+            s = np.ravel(self._f["windows/start_us"][...])
+            e = np.ravel(self._f["windows/end_us"][...]) if self._has("windows/end_us") else None
+        except _H5_ERRORS as err:
+            raise self._read_error(err) from None
+        if e is None or len(s) != len(e) or s.dtype.kind not in "iu" or e.dtype.kind not in "iu":
+            raise FormatError("windows/start_us and windows/end_us must be integer µs of one "
+                              "length", path=self.path,
+                              hint="repair the stored windows, or give `exposure=(T0, T1)`")
+        bad = np.flatnonzero(e <= s)
+        if len(bad):
+            k = int(bad[0])
+            raise FormatError(f"windows: window {k} [{s[k]}, {e[k]}] µs is empty or reversed",
+                              path=self.path,
                               hint="repair the stored windows, or give `exposure=(T0, T1)`")
         return [Exposure(int(a), int(b)) for a, b in zip(s, e, strict=True)]
 

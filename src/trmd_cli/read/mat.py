@@ -20,7 +20,9 @@ Units and conventions:
 * the file stores no sensor size: ``sensor`` (or the paired image, see
   :mod:`trmd_cli.read.folders`) gives it; otherwise max+1 with a warning.
 
-Binned files (LEDVDI's ``event_bins``) hold no individual events and are refused with a hint.
+Binned files (LEDVDI's ``event_bins``) hold no individual events: this reader refuses them with
+a pointer to the binned frame source (:mod:`trmd_cli.read.bins`), which reads them;
+:func:`mat_variable_names` lets it recognise them without decoding the data.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from ..events import Exposure, make_stream
 from .base import MemoryRecording, ReadOptions
 from .units import UNIT_SCALE_US
 
-__all__ = ["read_mat", "read_mat_window", "seconds_to_us"]
+__all__ = ["read_mat", "read_mat_window", "mat_variable_names", "seconds_to_us"]
 
 _ESL = ("section_event_timestamp", "section_event_x", "section_event_y",
         "section_event_polarity")
@@ -198,6 +200,76 @@ def _read_v5(buf: bytes, names: list[str] | None) -> dict[str, np.ndarray]:
     return out
 
 
+def mat_variable_names(path: str | Path) -> list[str]:
+    """Names of a .mat file's variables, without decoding their data: a compressed variable is
+    inflated only as far as its name. Cheap enough to sniff a file with; a damaged file gives
+    the names found before the damage (reading it then reports the damage).
+
+    Raises:
+        FormatError: not a MAT-file (level 5 or v7.3).
+    """
+    path = Path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(128)
+        if head.startswith(b"MATLAB 7.3"):
+            import h5py
+
+            try:
+                with h5py.File(path, "r") as f:
+                    return [k for k in f.keys() if isinstance(f[k], h5py.Dataset)]
+            except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+                raise FormatError(f"not a readable MATLAB 7.3 file: {e}", path=path,
+                                  hint=_DAMAGED) from None
+        order = {b"IM": "<", b"MI": ">"}.get(head[126:128]) if len(head) == 128 else None
+        if order is None:
+            raise FormatError("not a MAT-file (no level 5 header)", path=path, hint=_DAMAGED)
+        names: list[str] = []
+        pos = 128
+        while True:
+            fh.seek(pos)
+            tag = fh.read(8)
+            if len(tag) < 8:
+                return names
+            typ, nbytes = (int(v) for v in np.frombuffer(tag, order + "u4", 2))
+            if typ >> 16:  # a small element: no variable
+                pos += 8
+                continue
+            if typ == _MI_COMPRESSED:
+                inflate = zlib.decompressobj()
+                try:
+                    data = inflate.decompress(fh.read(min(nbytes, 1 << 12)), 1 << 10)
+                except zlib.error:
+                    return names
+                if len(data) < 8:
+                    return names
+                typ = int(np.frombuffer(data, order + "u4", 1)[0])
+                payload = data[8:]
+                pos += 8 + nbytes
+            else:
+                payload = fh.read(min(nbytes, 1 << 10))
+                pos += 8 + -(-nbytes // 8) * 8
+            if typ == _MI_MATRIX:
+                name = _matrix_name(payload, order)
+                if name is None:
+                    return names
+                names.append(name)
+
+
+def _matrix_name(payload: bytes, order: str) -> str | None:
+    """The name of a miMATRIX element from the first bytes of its data, or None."""
+    parts = []
+    try:
+        for part in _elements(payload, 0, len(payload), order):
+            parts.append(part)
+            if len(parts) == 3:
+                break
+    except _Damaged:
+        pass
+    if len(parts) < 3 or parts[0][0] != 6 or parts[1][0] != 5:
+        return None
+    return bytes(parts[2][1]).decode("latin-1")
+
+
 def _vector(data: dict[str, np.ndarray], name: str, path: Path) -> np.ndarray:
     v = np.asarray(data[name])
     if v.ndim > 2 or (v.ndim == 2 and min(v.shape) > 1):
@@ -247,9 +319,10 @@ def read_mat(path: Path, options: ReadOptions) -> MemoryRecording:
     if all(k in data for k in _ESL):
         cols = {k: _vector(data, name, path) for k, name in zip("txyp", _ESL, strict=True)}
     elif "event_bins" in data:
+        from .bins import BINNED_HINT
+
         raise FormatError("holds binned events ('event_bins', per-pixel polarity sums), not "
-                          "individual events", path=path,
-                          hint="binned inputs need the voxel path, not an event reader")
+                          "individual events", path=path, hint=BINNED_HINT)
     elif _first(data, ("events", "event")) is not None:
         name = _first(data, ("events", "event"))
         m = np.asarray(data[name])
@@ -270,9 +343,9 @@ def read_mat(path: Path, options: ReadOptions) -> MemoryRecording:
     x, y = cols["x"], cols["y"]
     if options.one_based:
         x, y = x - 1, y - 1
-    width, height = options.sensor or (None, None)
+    width, height = options.sensor or options.frame_size or (None, None)
     stream = make_stream(x, y, t_us, cols["p"], width, height, source=str(path))
-    if not options.sensor and len(stream):
+    if width is None and len(stream):
         warnings.append(f"{path.name} stores no sensor size; using {stream.width}x"
                         f"{stream.height} from the largest coordinates (pass `sensor=(W, H)`)")
     window = _window(data, path, options.time_unit)

@@ -90,6 +90,8 @@ def _build(cols: dict, path: Path, options: ReadOptions, fmt: str, width=None, h
     warnings = []
     if options.sensor is not None:
         width, height = options.sensor
+    elif (width is None or height is None) and options.frame_size is not None:
+        width, height = options.frame_size
     t = to_microseconds(np.ravel(cols["t"]), options.time_unit)
     x, y = np.ravel(cols["x"]), np.ravel(cols["y"])
     if options.one_based:
@@ -120,6 +122,11 @@ def read_npz(path: Path, options: ReadOptions) -> MemoryRecording:
                     if cols:
                         break
         if cols is None:
+            if "event_bins" in keys:
+                from .bins import BINNED_HINT
+
+                raise FormatError("holds binned events ('event_bins', per-pixel polarity sums), "
+                                  "not individual events", path=path, hint=BINNED_HINT)
             raise FormatError(f"no event arrays found (keys: {', '.join(sorted(keys)) or 'none'})",
                               path=path, hint="expected keys x, y, t, p (or xs, ys, ts, ps)")
         width = height = None
@@ -178,6 +185,11 @@ def read_npy(path: Path, options: ReadOptions) -> MemoryRecording:
     elif arr.ndim == 2 and arr.shape[1] >= 4:
         order = options.columns or ("t", "x", "y", "p")
         cols = {name: arr[:, i] for i, name in enumerate(order) if name != "_"}
+    elif arr.ndim in (3, 4):
+        from .bins import BINNED_HINT
+
+        raise FormatError(f"array of shape {arr.shape} is not an event list but looks like "
+                          "binned events (per-pixel counts)", path=path, hint=BINNED_HINT)
     else:
         raise FormatError(f"array of shape {arr.shape} is not an event list", path=path,
                           hint="expected (E, 4) columns t x y p or a structured array")

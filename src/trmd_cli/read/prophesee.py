@@ -162,6 +162,8 @@ def _sensor(header: PropheseeHeader, options: ReadOptions,
         return header.width, header.height
     if options.sensor:
         return options.sensor
+    if options.frame_size:
+        return options.frame_size
     if header.sensor_hint:
         w, h = header.sensor_hint
         warnings.append(f"the header states no sensor size; using {w}x{h} for the "

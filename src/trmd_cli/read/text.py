@@ -54,7 +54,8 @@ def read_text(path: Path, options: ReadOptions) -> MemoryRecording:
                 w, h = (float(f) for f in fields)
                 if not (w.is_integer() and h.is_integer() and 0 < w <= 65535 and 0 < h <= 65535):
                     raise FormatError(f"the first line '{' '.join(fields)}' is not a sensor size "
-                                      "W H", path=path, hint="fix that line or pass `sensor=(W, H)`")
+                                      "W H", path=path,
+                                      hint="fix that line or pass `sensor=(W, H)`")
                 sensor = (int(w), int(h))
             skip = i + 1
             continue
@@ -94,7 +95,8 @@ def read_text(path: Path, options: ReadOptions) -> MemoryRecording:
         # the whole column decides: eSL-Net writes the first time as "0" and the rest as
         # fractions of a second, and one integer-looking row must not truncate them all
         tcol = cols["t"]
-        fractional = bool(len(tcol)) and not bool(np.all(np.mod(tcol, 1.0) == 0.0))
+        with np.errstate(invalid="ignore"):  # a non-finite time is reported just below
+            fractional = bool(len(tcol)) and not bool(np.all(np.mod(tcol, 1.0) == 0.0))
         unit = "s" if ("." in t_field or "e" in t_field.lower() or fractional) else "us"
     t = to_microseconds(cols["t"], unit)
     collapsed = collapsed_times(t, unit)
@@ -103,6 +105,7 @@ def read_text(path: Path, options: ReadOptions) -> MemoryRecording:
     x, y = cols["x"], cols["y"]
     if options.one_based:
         x, y = x - 1, y - 1
+    sensor = sensor or options.frame_size
     if sensor is None:
         warnings.append("the file stores no sensor size: using max+1 of the coordinates "
                         "(pass `sensor=(W, H)` to set it)")

@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import random
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -25,6 +25,9 @@ import torch
 from ..errors import FormatError
 from ..write import atomic_path
 from .ema import WeightAverage
+
+if TYPE_CHECKING:
+    from ..models.grow import Grown
 
 __all__ = ["save_checkpoint", "load_checkpoint", "read_checkpoint_state", "capture_rng",
            "restore_rng", "CHECKPOINT_FORMAT", "META_KEY"]
@@ -140,7 +143,7 @@ def read_checkpoint_state(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise FormatError("no checkpoint to resume from", path=path,
-                          hint="start without --resume, or point --out at the run folder")
+                          hint="start without `resume=True`, or point `run_dir` at the run folder")
     try:
         with safe_open(str(path), framework="pt") as f:
             meta = f.metadata() or {}
@@ -149,7 +152,7 @@ def read_checkpoint_state(path: str | Path) -> dict[str, Any]:
                           path=path) from None
     if META_KEY not in meta:
         raise FormatError("safetensors file is not a trmd training checkpoint", path=path,
-                          hint="--resume needs a run folder with its checkpoint.safetensors")
+                          hint="`resume=True` needs a run folder with its checkpoint.safetensors")
     doc = json.loads(meta[META_KEY])
     if doc.get("format") != CHECKPOINT_FORMAT:
         raise FormatError(f"checkpoint format {doc.get('format')} is not supported "
@@ -174,28 +177,30 @@ def is_checkpoint(path: str | Path) -> bool:
         return False
 
 
-def load_init_state(model: torch.nn.Module, state: dict[str, torch.Tensor]) -> list[str]:
-    """Load starting weights into ``model``: exactly, or — for a network that can grow
-    (``load_grown``, e.g. a RE-Net with ``refine``) — with its new layers missing, which then
-    start as an identity. Returns the names of the layers that started so.
+def load_init_state(model: torch.nn.Module, state: dict[str, torch.Tensor]) -> Grown:
+    """Load starting weights into ``model``: exactly, or — a RE-Net — grown from the weights of
+    a smaller network of its family (:func:`~trmd_cli.models.grow.load_grown`), computing what
+    they computed. Returns what was grown.
 
     Raises:
         RuntimeError: the weights do not fit (as ``load_state_dict``).
     """
-    grow = getattr(model, "load_grown", None)
-    if grow is not None:
-        return list(grow(state))
+    from ..models.grow import Grown, load_grown
+    from ..models.renet import RENet
+
+    if isinstance(model, RENet):
+        return load_grown(model, state)
     model.load_state_dict(state, strict=True)
-    return []
+    return Grown()
 
 
 def load_checkpoint_weights(path: str | Path, model: torch.nn.Module) -> dict[str, Any]:
     """Only the model's weights from a checkpoint (fine-tuning from a run); its JSON state.
 
     When the run kept a weight average (``optim.ema``) that is what is loaded: it is the
-    version the run validated and would have shipped. A network that can grow may lack layers
-    in the checkpoint (:func:`load_init_state`); their names are under ``"grown"`` in the
-    returned state.
+    version the run validated and would have shipped. A network that can grow may come from a
+    smaller one's checkpoint (:func:`load_init_state`); what was grown is under ``"grown"`` (a
+    :class:`~trmd_cli.models.grow.Grown`) in the returned state.
 
     Raises:
         FormatError: not a checkpoint, or its weights do not fit ``model``.

@@ -1,4 +1,4 @@
-"""Training data: ``--data`` paths → datasets, the held-out split, and a resumable sampler.
+"""Training data: ``data`` paths → datasets, the held-out split, and a resumable sampler.
 
 Every dataset yields dicts of float32 tensors::
 
@@ -7,7 +7,7 @@ Every dataset yields dicts of float32 tensors::
     sharp    (2N+1, C, H, W)    ground-truth latent frames (absent for unlabelled data)
     contrast ()                 true mean contrast threshold, NaN when unknown
 
-What each ``--data`` path becomes:
+What each ``data`` path becomes:
 
 - an image file, or a folder of images (searched recursively) → ``SimulatedDataset`` (sharp
   sequences, events and blur simulated on the fly);
@@ -23,6 +23,7 @@ from a checkpoint sees exactly the batches an uninterrupted run would have seen.
 
 from __future__ import annotations
 
+import hashlib
 import inspect
 import math
 import os
@@ -85,18 +86,18 @@ def detect_kind(path: Path) -> str:
 
 
 def gather(paths: Sequence[str | Path]) -> list[tuple[str, list[Path]]]:
-    """Group ``--data`` paths by reader: ``[("images", [img, …]), ("trmd_h5", [file]), …]``.
+    """Group ``data`` paths by reader: ``[("images", [img, …]), ("trmd_h5", [file]), …]``.
 
     Images from all paths form one group; each HDF5 file is its own group.
     """
     if not paths:
-        raise InputError("no training data given", hint="pass --data FOLDER_OR_H5")
+        raise InputError("no training data given", hint="pass `data` (image folders or .h5 sets)")
     images: list[Path] = []
     groups: list[tuple[str, list[Path]]] = []
     for raw in paths:
         path = Path(raw).expanduser()
         if not path.exists():
-            raise InputError("training data not found", path=path, hint="check the --data path")
+            raise InputError("training data not found", path=path, hint="check the `data` path")
         if path.is_dir():
             h5s = sorted(p for p in path.rglob("*") if p.suffix.lower() in H5_EXTENSIONS
                          and p.is_file())
@@ -355,13 +356,42 @@ class EpochSampler(Sampler[int]):
 
 @dataclass
 class DataPlan:
-    """Datasets for one run, and notes worth telling the user."""
+    """Datasets for one run, and notes worth telling the user.
+
+    ``val_source`` says where the validation set comes from, for people (a path on this
+    machine); ``val_record`` is what metadata keeps of it (:func:`data_record` for a file or
+    folder given as ``data.val_data``, else ``val_source``).
+    """
 
     train: Dataset
     val: Dataset | None
     sources: list[str]
     val_source: str
     notes: list[str] = field(default_factory=list)
+    val_record: str | dict[str, Any] = "none"
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes, 64 hex digits."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def data_record(path: Path, files: Sequence[Path]) -> dict[str, Any]:
+    """A data set as metadata records it: by name and content, not by its path on this machine.
+
+    A file: ``{"file": name, "sha256": <64 hex>}``. A folder: ``{"folder": name, "files": k,
+    "sha256": <64 hex>}``, the digest of the lines ``<path relative to the folder>\t<sha256>``
+    of the ``files`` read from it, sorted.
+    """
+    if path.is_file():
+        return {"file": path.name, "sha256": file_sha256(path)}
+    lines = sorted(f"{f.relative_to(path).as_posix()}\t{file_sha256(f)}\n" for f in files)
+    digest = hashlib.sha256("".join(lines).encode()).hexdigest()
+    return {"folder": path.name, "files": len(lines), "sha256": digest}
 
 
 def wants_levels(recipe) -> bool:
@@ -371,7 +401,7 @@ def wants_levels(recipe) -> bool:
 
     m = recipe.model
     try:
-        base = variant_args(m.name)
+        base = variant_args(m.name)  # an old name reads through the aliases
     except KeyError:  # not a registered RE-Net variant: only its own args can ask for timing
         base = {}
     return bool(m.args.get("timing", base.get("timing", False)))
@@ -499,17 +529,19 @@ def build_data(paths: Sequence[str | Path], recipe, *, supervised: bool = True) 
         sources.append(f"{path.name}: {size - n_val} sample(s)"
                        + (" (GOPRO layout)" if kind == "gopro_h5" else ""))
     if len({"sharp" in peek_item(part) for part in train_parts}) > 1:
-        raise InputError("some --data sets have ground-truth sharp frames and some do not",
-                         hint="train on one kind at a time (e.g. fine-tune with --init-weights)")
+        raise InputError("some `data` sets have ground-truth sharp frames and some do not",
+                         hint="train on one kind at a time (e.g. fine-tune with `init_weights`)")
     train = train_parts[0] if len(train_parts) == 1 else ConcatDataset(train_parts)
 
     val: Dataset | None = None
     val_source = "none"
+    val_files: list[Path] = []
     if d.val_data:
         vpath = recipe.resolve_path(d.val_data)
         vgroups = gather([vpath])
         vparts = []
         for kind, files in vgroups:
+            val_files += files
             if kind == "images":
                 vparts.append(_simulated(files, recipe, length=max(d.val_samples, 1),
                                          seed=seed + 7919, crop=d.val_crop or d.crop,
@@ -532,4 +564,8 @@ def build_data(paths: Sequence[str | Path], recipe, *, supervised: bool = True) 
         elif "sharp" not in peek_item(val):
             notes.append(f"validation data ({val_source}) has no ground truth: no validation")
             val, val_source = None, "none (no ground truth)"
-    return DataPlan(train=train, val=val, sources=sources, val_source=val_source, notes=notes)
+    record: str | dict[str, Any] = val_source
+    if val is not None and d.val_data:
+        record = data_record(recipe.resolve_path(d.val_data), val_files)
+    return DataPlan(train=train, val=val, sources=sources, val_source=val_source, notes=notes,
+                    val_record=record)

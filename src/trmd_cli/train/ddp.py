@@ -54,13 +54,14 @@ def setup(device: str = "auto") -> Dist:
         device: ``"auto"`` (CUDA if available), ``"cpu"`` or ``"cuda"``.
     """
     if device not in ("auto", "cpu", "cuda"):
-        raise InputError(f"--device {device!r} is not auto, cpu or cuda")
+        raise InputError(f"`device={device!r}` is not auto, cpu or cuda")
     world = _env_int("WORLD_SIZE", 1)
     rank = _env_int("RANK", 0)
     local = _env_int("LOCAL_RANK", 0)
     use_cuda = torch.cuda.is_available() if device == "auto" else device == "cuda"
     if use_cuda and not torch.cuda.is_available():
-        raise InputError("--device cuda but no CUDA device is available", hint="use --device cpu")
+        raise InputError("`device='cuda'` but no CUDA device is available",
+                         hint="use `device='cpu'`")
     if use_cuda:
         torch.cuda.set_device(local % torch.cuda.device_count())
         dev = torch.device("cuda", torch.cuda.current_device())

@@ -12,6 +12,11 @@ RUN_DIR receives (rank 0 only, all atomically):
 - ``final.safetensors``: weights at the end (all steps done or the time budget used up);
 - ``recipe.json``: the resolved recipe and data of the run.
 
+Weights and ``recipe.json`` name the validation set by its file name and SHA-256, not by its
+path on the training machine (:func:`~.data.data_record`). The loop itself is
+:func:`~.steps.step`, :func:`~.steps.validate` and :func:`~.steps.checkpoint` over a
+:class:`~.steps.TrainState`; this module decides when each happens.
+
 Reproducibility: every random choice is seeded from the recipe (model init from ``seed``, sample
 order and crops from (seed, epoch, index)), and checkpoints hold the RNG states, optimiser and
 log, so an interrupted run resumed with ``resume=True`` ends with the weights an uninterrupted
@@ -20,28 +25,24 @@ run would have produced (to floating-point tolerance).
 
 from __future__ import annotations
 
-import contextlib
-import csv
-import io
-import math
 import os
 import random
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import torch
 
-from ..errors import InputError, OutputExistsError, TrmdError, WeightsError
-from ..precision import autocast, precision_name, resolve_precision
+from ..errors import InputError, OutputExistsError, WeightsError
+from ..precision import precision_name, resolve_precision
 from . import ddp
-from .checkpoint import load_checkpoint, read_checkpoint_state, save_checkpoint
+from .checkpoint import load_checkpoint, read_checkpoint_state
 from .data import DataPlan, EpochSampler, build_data, set_epoch
 from .ema import WeightAverage
-from .losses import SUPERVISED, total_loss
+from .losses import SUPERVISED
 from .recipe import (
     RESUME_LENGTH_KEYS,
     RESUME_SAFE_KEYS,
@@ -51,20 +52,38 @@ from .recipe import (
     recipe_diff,
     recipe_from_dict,
 )
+from .steps import (
+    CHECKPOINT,
+    LOG_COLUMNS,
+    Run,
+    TrainState,
+    checkpoint,
+    evaluate,
+    forward,
+    log_row,
+    lr_at,
+    recipe_record,
+    save_run_weights,
+    step,
+    validate,
+    write_outputs,
+)
 
-__all__ = ["train", "TrainResult", "Reporter", "lr_at", "evaluate", "LOG_COLUMNS",
+if TYPE_CHECKING:
+    from ..models.grow import Grown
+
+__all__ = ["train", "TrainResult", "Reporter", "lr_at", "evaluate", "forward", "LOG_COLUMNS",
            "CHECKPOINT", "RUN_FILES", "build_model"]
 
-CHECKPOINT = "checkpoint.safetensors"
 #: every file a run writes into its folder
 RUN_FILES = (CHECKPOINT, "log.csv", "curve.png", "best.safetensors", "final.safetensors",
              "recipe.json")
-LOG_COLUMNS = ("step", "epoch", "loss", "lr", "val_psnr_mid", "val_psnr_seq", "seconds")
 
 
 class Reporter(Protocol):
     """What the loop tells its caller. All methods are optional to act upon."""
 
+    def phase(self, message: str) -> None: ...
     def start(self, *, total: int, done: int, info: dict[str, Any]) -> None: ...
     def step(self, *, step: int, loss: float, lr: float) -> None: ...
     def validated(self, *, step: int, psnr_mid: float, psnr_seq: float) -> None: ...
@@ -73,6 +92,7 @@ class Reporter(Protocol):
 
 
 class _Silent:
+    def phase(self, message: str) -> None: ...
     def start(self, **_: Any) -> None: ...
     def step(self, **_: Any) -> None: ...
     def validated(self, **_: Any) -> None: ...
@@ -89,7 +109,7 @@ class TrainResult:
     total_steps: int
     epochs: float
     seconds: float
-    stopped: str  # "done", "time_budget" or "session_limit"
+    stopped: str  # "done", "time_budget" or "step_limit"
     val_psnr_mid: float | None
     val_psnr_seq: float | None
     best_val_psnr_mid: float | None
@@ -97,22 +117,6 @@ class TrainResult:
     final_weights: Path | None
     best_weights: Path | None
     notes: list[str] = field(default_factory=list)
-
-
-def lr_at(step: int, recipe: Recipe, total: int) -> float:
-    """Learning rate for optimiser step ``step`` (0-based) of ``total``.
-
-    Linear warm-up from lr/warmup to lr over ``warmup_steps``, then constant or cosine decay
-    to ``min_lr`` at the last step.
-    """
-    o = recipe.optim
-    if o.warmup_steps and step < o.warmup_steps:
-        return o.lr * (step + 1) / o.warmup_steps
-    if o.schedule == "constant":
-        return o.lr
-    span = max(total - o.warmup_steps, 1)
-    frac = min(max((step - o.warmup_steps) / span, 0.0), 1.0)
-    return o.min_lr + 0.5 * (o.lr - o.min_lr) * (1.0 + math.cos(math.pi * frac))
 
 
 def build_model(recipe: Recipe) -> torch.nn.Module:
@@ -127,112 +131,10 @@ def build_model(recipe: Recipe) -> torch.nn.Module:
                          hint="check the keys of [model.args]") from None
 
 
-def forward(model: torch.nn.Module, batch: dict[str, torch.Tensor], *, needs_contrast: bool,
-            jitter: float = 0.0, fallback_contrast: float = 0.2,
-            timing: bool = False) -> torch.Tensor:
-    """The network's residuals for a batch; networks that take the threshold c get the batch's
-    true c (``fallback_contrast`` where unknown) times ``exp(N(0, jitter))``; networks that take
-    sub-bin timing (``timing``) get ``batch["levels"]`` after the voxels (the counts again
-    where the data has none, as in use on binned data)."""
-    voxels = batch["voxels"]
-    if timing:
-        voxels = torch.cat([voxels, batch.get("levels", voxels)], 1)
-    if not needs_contrast:
-        return model(batch["blurry"], voxels)
-    c = batch["contrast"].to(batch["blurry"].device, torch.float32).reshape(-1)
-    c = torch.where(torch.isfinite(c) & (c > 0), c, torch.full_like(c, fallback_contrast))
-    if jitter > 0:
-        c = c * torch.exp(jitter * torch.randn(c.shape)).to(c.device)
-    return model(batch["blurry"], voxels, c)
-
-
 def _has_true_contrast(dataset) -> bool:
     """Whether samples carry their sensor's threshold (judged by the first one)."""
     c = dataset[0].get("contrast") if len(dataset) else None
     return c is not None and bool(torch.isfinite(torch.as_tensor(c)).all())
-
-
-def _to_device(batch: dict[str, torch.Tensor], device: torch.device,
-               channels_last: bool) -> dict[str, torch.Tensor]:
-    out = {}
-    for k, v in batch.items():
-        v = v.to(device, non_blocking=True)
-        if channels_last and v.ndim == 4:
-            v = v.contiguous(memory_format=torch.channels_last)
-        out[k] = v
-    return out
-
-
-@torch.no_grad()
-def evaluate(model: torch.nn.Module, dataset, *, dist: ddp.Dist | None = None,
-             batch_size: int = 1, amp_dtype: torch.dtype | None = None,
-             fallback_contrast: float = 0.2) -> tuple[float, float, int]:
-    """Mean validation PSNR (dB, data range 1, outputs clipped to [0, 1]) over ``dataset``.
-
-    Networks that take the threshold c get each sample's true c (``fallback_contrast`` where
-    the data has none) — in use they get an estimate, so this is slightly optimistic for them.
-    ``amp_dtype``: autocast dtype of the network (None = float32; see :mod:`trmd_cli.precision`).
-
-    Returns:
-        (middle-frame PSNR, sequence PSNR = mean of the per-frame PSNRs, sample count); each
-        averaged over samples. Under DDP the samples are shared among processes and the sums
-        gathered, so every process gets the same figures.
-    """
-    from ..metrics import psnr_per_item
-    from ..reconstruct import reconstruct
-
-    dist = dist or ddp.Dist()
-    device = dist.device
-    was_training = model.training
-    model.eval()
-    idx = list(range(dist.rank, len(dataset), dist.world))
-    s_mid = s_seq = 0.0
-    count = 0
-    try:
-        for start in range(0, len(idx), batch_size):
-            items = [dataset[i] for i in idx[start:start + batch_size]]
-            batch = {k: torch.stack([it[k] for it in items]).to(device) for k in
-                     ("blurry", "voxels", "levels", "sharp", "contrast") if k in items[0]}
-            with autocast(device, amp_dtype):
-                residuals = forward(model, batch, fallback_contrast=fallback_contrast,
-                                    needs_contrast=getattr(model, "needs_contrast", False),
-                                    timing=bool(getattr(model, "timing", False)))
-            latent = reconstruct(batch["blurry"], residuals.float()).clamp(0.0, 1.0)
-            sharp = batch["sharp"]
-            b, frames = sharp.shape[:2]
-            mid = frames // 2
-            s_mid += float(psnr_per_item(latent[:, mid], sharp[:, mid]).sum())
-            per_frame = psnr_per_item(latent.flatten(0, 1), sharp.flatten(0, 1)).view(b, frames)
-            s_seq += float(per_frame.mean(1).sum())
-            count += b
-    finally:
-        model.train(was_training)
-    s_mid, s_seq, total = ddp.all_reduce_sum(dist, [s_mid, s_seq, float(count)])
-    if total == 0:
-        return float("nan"), float("nan"), 0
-    return s_mid / total, s_seq / total, int(total)
-
-
-def _write_log(path: Path, history: Sequence[dict]) -> None:
-    from ..write import write_text
-
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(LOG_COLUMNS)
-    for row in history:
-        out = []
-        for col in LOG_COLUMNS:
-            v = row.get(col)
-            if v is None:
-                out.append("")
-            elif col == "step":
-                out.append(str(int(v)))
-            elif col == "lr":
-                out.append(f"{v:.6g}")
-            else:
-                out.append(f"{v:.6f}" if isinstance(v, float) else str(v))
-        w.writerow(out)
-    write_text(path, buf.getvalue())
 
 
 def _threads(recipe: Recipe, dist: ddp.Dist) -> int:
@@ -278,16 +180,16 @@ def _resolve_run(data: Sequence[str | Path] | None, recipe: Recipe | None, run_d
     if changed:
         raise InputError(f"the recipe differs from the one the run started with in "
                          f"{', '.join(changed)}", path=ckpt,
-                         hint="resume with the run's own recipe (omit --recipe), or start a new "
-                         "run (--init-weights to fine-tune from its weights)")
+                         hint="resume with the run's own recipe (omit `recipe`), or start a new "
+                         "run (`init_weights` to fine-tune from its weights)")
     if any(k in RESUME_LENGTH_KEYS for k in diff):
         notes.append("the run's length changed: the learning-rate schedule differs from the "
                      "original run's from here on")
     stored_data = list(state.get("data") or [])
     new_data = [str(Path(p).expanduser().resolve()) for p in (data or [])]
     if new_data and new_data != stored_data:
-        raise InputError("--data differs from the data the run started with", path=ckpt,
-                         hint="omit --data when resuming (the run's own data is used)")
+        raise InputError("`data` differs from the data the run started with", path=ckpt,
+                         hint="omit `data` when resuming (the run's own data is used)")
     return recipe, stored_data, state, notes
 
 
@@ -295,12 +197,12 @@ def train(data: Sequence[str | Path] | None = None, *, recipe: Recipe | None = N
           run_dir: str | Path, resume: bool = False, init_weights: str | Path | None = None,
           overrides: list[str] | None = None, overwrite: bool = False, device: str = "auto",
           reporter: Reporter | None = None,
-          session_steps: int | None = None,
+          stop_after_steps: int | None = None,
           clock: Callable[[], float] = time.monotonic) -> TrainResult:
     """Train a RE-Net as ``recipe`` says on ``data``, writing into ``run_dir``.
 
     Args:
-        data: ``--data`` paths (image folders, trmd HDF5 sets, GOPRO-layout h5); may be None
+        data: ``data`` paths (image folders, trmd HDF5 sets, GOPRO-layout h5); may be None
             when resuming (the run's own data is used).
         recipe: None = the shipped default (or, when resuming, the run's own recipe).
         run_dir: output folder; created if missing.
@@ -312,7 +214,7 @@ def train(data: Sequence[str | Path] | None = None, *, recipe: Recipe | None = N
         overwrite: start afresh in a ``run_dir`` that already holds a run.
         device: ``"auto"``, ``"cpu"`` or ``"cuda"``.
         reporter: receives progress; the loop itself never prints.
-        session_steps: stop (checkpointed, resumable) after this many steps in this call.
+        stop_after_steps: stop (checkpointed, resumable) after this many steps of this call.
         clock: seconds, monotonic; the time budget is measured with it.
     Returns:
         :class:`TrainResult`.
@@ -324,34 +226,133 @@ def train(data: Sequence[str | Path] | None = None, *, recipe: Recipe | None = N
     run_dir = Path(run_dir).expanduser()
     if not resume and (run_dir / CHECKPOINT).exists() and not overwrite:
         raise OutputExistsError("this folder already holds a training run", path=run_dir,
-                                hint="pass --resume to continue it, --overwrite to start over, "
-                                "or choose another --out")
+                                hint="pass `resume=True` to continue it, `overwrite=True` to "
+                                "start over, or choose another `run_dir`")
     if resume and init_weights is not None:
-        raise InputError("--init-weights cannot be combined with --resume",
+        raise InputError("`init_weights` cannot be combined with `resume=True`",
                          hint="a resumed run continues from its own checkpoint")
     recipe, data_paths, resumed, notes = _resolve_run(data, recipe, run_dir, resume,
                                                       overrides)
     if not data_paths:
-        raise InputError("no training data given", hint="pass --data FOLDER_OR_H5")
+        raise InputError("no training data given", hint="pass `data` (image folders or .h5 sets)")
 
     dist = ddp.setup(device)
     try:
         return _train(recipe, data_paths, run_dir, resumed, init_weights, dist, reporter,
-                      session_steps, clock, t_start, notes)
+                      stop_after_steps, clock, t_start, notes)
     finally:
         ddp.teardown(dist)
 
 
 def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict | None,
            init_weights: str | Path | None, dist: ddp.Dist, reporter: Reporter,
-           session_steps: int | None, clock: Callable[[], float], t_start: float,
+           stop_after_steps: int | None, clock: Callable[[], float], t_start: float,
            notes: list[str]) -> TrainResult:
-    from ..reconstruct import reconstruct
+    run, state = _setup(recipe, data_paths, run_dir, resumed, init_weights, dist, reporter,
+                        clock, t_start, notes)
+    r, tr = run.recipe, run.recipe.train
+    plan, batch = run.plan, r.data.batch_size
+    sampler = EpochSampler(len(plan.train), seed=r.seed, rank=dist.rank, world=dist.world)
+    budget = tr.time_budget_minutes * 60.0
+    state.last_ckpt = clock()
+    stopped = "done"
+    start_step = state.step
+    final_path = None
 
+    reporter.start(total=run.total, done=state.step, info={
+        "run_dir": str(run_dir), "recipe": r.name, "model": r.model.name,
+        "train": plan.sources, "validation": plan.val_source, "batches_per_epoch": run.bpe,
+        "world": dist.world, "device": str(dist.device), "threads": torch.get_num_threads(),
+        "precision": precision_name(run.amp_dtype),
+        "resumed_at": state.step if resumed is not None else None})
+    for note in notes:
+        reporter.note(note)
+
+    if budget and state.seconds_before >= budget and state.step < run.total:
+        stopped = "time_budget"  # resumed with the budget already used up: no extra step
+    try:
+        while state.step < run.total and stopped == "done":
+            epoch = state.step // run.bpe
+            set_epoch(plan.train, epoch)
+            sampler.set_position(epoch, (state.step % run.bpe) * batch)
+            loader = torch.utils.data.DataLoader(
+                plan.train, batch_size=batch, sampler=sampler, drop_last=True,
+                num_workers=r.data.num_workers, pin_memory=dist.device.type == "cuda",
+                # a private generator: creating the iterator must not draw from the global RNG
+                generator=torch.Generator().manual_seed(r.seed * 1000003 + epoch))
+            for raw in loader:
+                _, lr = step(run, state, raw)
+                limit_reached = (stop_after_steps is not None
+                                and state.step - start_step >= stop_after_steps)
+                stopped = _after_step(run, state, lr, budget, limit_reached)
+                if stopped != "done" or state.step >= run.total:
+                    break
+    finally:
+        reporter.close()
+
+    if stopped in ("done", "time_budget") and dist.is_main:
+        final_path = save_run_weights(run_dir / "final.safetensors", run, state)
+        if state.best_path is None and (run_dir / "best.safetensors").exists():
+            state.best_path = run_dir / "best.safetensors"
+    ddp.barrier(dist)
+    return TrainResult(run_dir=run_dir, steps=state.step, total_steps=run.total,
+                       epochs=state.step / run.bpe, seconds=run.elapsed(state), stopped=stopped,
+                       val_psnr_mid=state.last_val["psnr_mid"],
+                       val_psnr_seq=state.last_val["psnr_seq"],
+                       best_val_psnr_mid=state.best["psnr_mid"], best_step=state.best["step"],
+                       final_weights=final_path, best_weights=state.best_path, notes=notes)
+
+
+def _after_step(run: Run, state: TrainState, lr: float, budget: float,
+                limit_reached: bool) -> str:
+    """Log, validate, checkpoint as the recipe says after a step; returns why the run stops
+    (``"done"``: it goes on, or it has done every step)."""
+    tr, dist, s = run.recipe.train, run.dist, state.step
+    logged = s % tr.log_every == 0 or s == run.total
+    if logged:
+        loss_sum, count = ddp.all_reduce_sum(dist, [state.loss_acc[0],
+                                                     float(state.loss_acc[1])])
+        log_row(run, state, loss_sum / max(count, 1), lr, False)
+        state.loss_acc[:] = [0.0, 0]
+    if s % tr.val_every == 0 or s == run.total:
+        validate(run, state)
+        log_row(run, state, None, lr, True)
+    # stop while one more step, a validation and two saves still fit the budget; every
+    # process must agree, so the clocks' verdicts are summed over processes
+    out_of_time = bool(budget) and (run.elapsed(state) + state.step_time + state.val_time
+                                    + 2 * state.ckpt_time + 1.0 >= budget)
+    due = bool(tr.checkpoint_minutes) and (
+        run.clock() - state.last_ckpt >= tr.checkpoint_minutes * 60)
+    out_of_time, timed = (v > 0 for v in ddp.all_reduce_sum(
+        dist, [float(out_of_time), float(due)]))
+    stopped = "done"
+    if out_of_time and s < run.total:
+        stopped = "time_budget"
+    elif limit_reached and s < run.total:
+        stopped = "step_limit"
+    if stopped == "time_budget" and state.last_val["step"] != s:
+        validate(run, state)
+        log_row(run, state, None, lr, True)
+    if s % tr.checkpoint_every == 0 or timed or s == run.total or stopped != "done":
+        checkpoint(run, state)
+    elif logged and dist.is_main:
+        write_outputs(run.run_dir, state.history, run.recipe.name)
+    return stopped
+
+
+def _setup(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict | None,
+           init_weights: str | Path | None, dist: ddp.Dist, reporter: Reporter,
+           clock: Callable[[], float], t_start: float, notes: list[str]
+           ) -> tuple[Run, TrainState]:
+    """Data, network, optimiser and state of a new or resumed run; the run folder prepared.
+    The order of everything that draws random numbers is part of what makes runs
+    reproducible: seeds, the data plan, the network's initialisation, then the checkpoint."""
     r, tr = recipe, recipe.train
     torch.set_num_threads(_threads(recipe, dist))
     _seed_everything(r.seed)
     supervised = any(w > 0 for k, w in r.loss.weights.items() if k in SUPERVISED)
+    # reading or simulating the data can take minutes: say so before, not after
+    reporter.phase("preparing the training and validation data")
     plan: DataPlan = build_data(data_paths, r, supervised=supervised)
     notes += plan.notes
     batch = r.data.batch_size
@@ -363,6 +364,8 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
                          hint="lower data.batch_size or add data (data.length for image folders)")
     total = tr.epochs * bpe if tr.epochs else tr.steps
 
+    reporter.phase(f"building {r.model.name}" + (" and loading the checkpoint"
+                                                   if resumed is not None else ""))
     model = build_model(r).to(dist.device)
     if tr.channels_last:
         model = model.to(memory_format=torch.channels_last)
@@ -377,246 +380,78 @@ def _train(recipe: Recipe, data_paths: list[str], run_dir: Path, resumed: dict |
     # validation stays in float32 on CPU so figures compare across runs and machines
     val_dtype = amp_dtype if dist.device.type == "cuda" else None
 
-    step, seconds_before = 0, 0.0
-    history: list[dict] = []
-    best: dict[str, Any] = {"psnr_mid": None, "psnr_seq": None, "step": None}
-    last_val: dict[str, Any] = {"psnr_mid": None, "psnr_seq": None, "step": None}
-    acc = [0.0, 0]  # running loss sum and count since the last log row
+    state = TrainState()
     if resumed is not None:
         doc = load_checkpoint(run_dir / CHECKPOINT, model=model, optimizer=optimizer,
                               scaler=scaler, ema=ema)
-        step, seconds_before = int(doc["step"]), float(doc["seconds"])
-        history, best, last_val = doc["history"], doc["best"], doc["last_val"]
-        acc = list(doc["loss_acc"])
+        state = TrainState.from_checkpoint(doc)
         if int(doc.get("world", 1)) != dist.world:
             notes.append(f"resumed with {dist.world} process(es), the run started with "
                          f"{doc.get('world')}: the batches differ from an uninterrupted run")
     elif init_weights is not None:
-        grown = _load_init(model, init_weights, r)
-        timing_in = getattr(model, "TIMING_INPUTS", ())
-        # the feature extractors' first convs: the head also grows with a wider U-Net
-        timed = [k for k in grown if k in timing_in[:2]]
-        # a wider U-Net lists all its layers as grown (down1 is never grown otherwise)
-        wider = "down1.0.weight" in grown
-        added = [] if wider else sorted({k.split(".")[0] for k in grown if k not in timing_in})
-        if added:
-            notes.append(f"--init-weights had no {', '.join(added)} layers: they start as an "
-                         "identity, so the run starts from exactly what those weights computed")
-        if timed:
-            notes.append("--init-weights had no timing inputs: their weights start at zero, "
-                         "so the run starts from exactly what those weights computed")
-        if wider:
-            notes.append("--init-weights has a narrower U-Net: the new channels start random, "
-                         "their weights into the old ones at zero, so the run starts from "
-                         "exactly what those weights computed")
+        notes += _grow_notes(_load_init(model, init_weights, r))
     if ema is None and r.optim.ema > 0:
         ema = WeightAverage(model, r.optim.ema)
 
     bare = model
-    needs_contrast = bool(getattr(bare, "needs_contrast", False))
-    if needs_contrast and not _has_true_contrast(plan.train):
+    if bare.needs.contrast and not _has_true_contrast(plan.train):
         notes.append(f"the training data stores no true contrast threshold: "
                      f"{r.model.name} is given loss.contrast = {r.loss.contrast} "
                      "(set it to your camera's, or train a network without it)")
-    # what is validated and written as best/final weights: the average when there is one
-    judged = ema.module if ema is not None else bare
     if dist.enabled:
         model = torch.nn.parallel.DistributedDataParallel(
             bare, device_ids=[dist.device.index] if dist.device.type == "cuda" else None)
     if dist.is_main:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        if resumed is None:  # a fresh start: no stale outputs of an earlier run stay behind
-            for name in RUN_FILES:
-                (run_dir / name).unlink(missing_ok=True)
-        for name in RUN_FILES:  # temporaries of a process killed (-9) while writing
-            stem = Path(name).stem
-            for tmp in run_dir.glob(f".{stem}.*.tmp*"):
-                tmp.unlink(missing_ok=True)
+        _prepare_run_dir(run_dir, fresh=resumed is None)
         from ..write import write_json
 
-        write_json(run_dir / "recipe.json", {"recipe": r.to_dict(), "data": data_paths,
-                                             "validation": plan.val_source, "world": dist.world})
-
-    sampler = EpochSampler(len(plan.train), seed=r.seed, rank=dist.rank, world=dist.world)
-    budget = tr.time_budget_minutes * 60.0
-    t0 = t_start
-    last_ckpt = clock()
-    step_time = 0.0
-    val_time = ckpt_time = 0.0
-    stopped = "done"
-    start_step = step
-    final_path = best_path = None
-
-    def elapsed() -> float:
-        return seconds_before + (clock() - t0)
-
-    def validate() -> None:
-        nonlocal val_time
-        if plan.val is None:
-            return
-        tv = clock()
-        vb = r.data.batch_size if r.data.val_crop else 1
-        mid, seq, _ = evaluate(judged, plan.val, dist=dist, batch_size=vb, amp_dtype=val_dtype,
-                               fallback_contrast=r.loss.contrast)
-        val_time = clock() - tv
-        last_val.update(psnr_mid=mid, psnr_seq=seq, step=step)
-        reporter.validated(step=step, psnr_mid=mid, psnr_seq=seq)
-        if best["psnr_mid"] is None or mid > best["psnr_mid"]:
-            best.update(psnr_mid=mid, psnr_seq=seq, step=step)
-            if dist.is_main:
-                nonlocal best_path
-                best_path = _save_weights(run_dir / "best.safetensors", judged, r, data_paths,
-                                          plan, step, total, bpe, elapsed(), last_val, best)
-
-    def row(loss: float | None, lr: float, val: bool) -> None:
-        entry: dict[str, Any] = {"step": step, "epoch": step / bpe, "loss": loss, "lr": lr,
-                                 "val_psnr_mid": last_val["psnr_mid"] if val else None,
-                                 "val_psnr_seq": last_val["psnr_seq"] if val else None,
-                                 "seconds": elapsed()}
-        if history and history[-1]["step"] == step:
-            history[-1].update({k: v for k, v in entry.items() if v is not None})
-        else:
-            history.append(entry)
-
-    def save() -> None:
-        nonlocal last_ckpt, ckpt_time
-        tc = clock()
-        if dist.is_main:
-            save_checkpoint(run_dir / CHECKPOINT, model=bare, optimizer=optimizer, scaler=scaler,
-                            ema=ema,
-                            state={"step": step, "total_steps": total, "epoch": step // bpe,
-                                   "skip": (step % bpe) * batch, "batches_per_epoch": bpe,
-                                   "seconds": elapsed(), "history": history, "best": best,
-                                   "last_val": last_val, "loss_acc": acc,
-                                   "recipe": r.to_dict(), "recipe_base_dir": r.base_dir,
-                                   "data": data_paths, "world": dist.world})
-            _write_outputs(run_dir, history, r.name)
-        ddp.barrier(dist)
-        last_ckpt = clock()
-        ckpt_time = last_ckpt - tc
-
-    reporter.start(total=total, done=step, info={
-        "run_dir": str(run_dir), "recipe": r.name, "model": r.model.name,
-        "train": plan.sources, "validation": plan.val_source, "batches_per_epoch": bpe,
-        "world": dist.world, "device": str(dist.device), "threads": torch.get_num_threads(),
-        "precision": precision_name(amp_dtype),
-        "resumed_at": step if resumed is not None else None})
-    for note in notes:
-        reporter.note(note)
-
-    if budget and seconds_before >= budget and step < total:
-        stopped = "time_budget"  # resumed with the budget already used up: no extra step
-    try:
-        while step < total and stopped == "done":
-            epoch = step // bpe
-            set_epoch(plan.train, epoch)
-            sampler.set_position(epoch, (step % bpe) * batch)
-            loader = torch.utils.data.DataLoader(
-                plan.train, batch_size=batch, sampler=sampler, drop_last=True,
-                num_workers=r.data.num_workers, pin_memory=dist.device.type == "cuda",
-                # a private generator: creating the iterator must not draw from the global RNG
-                generator=torch.Generator().manual_seed(r.seed * 1000003 + epoch))
-            for raw in loader:
-                ts = clock()
-                lr = lr_at(step, r, total)
-                for g in optimizer.param_groups:
-                    g["lr"] = lr
-                b = _to_device(raw, dist.device, tr.channels_last)
-                with autocast(dist.device, amp_dtype):
-                    residuals = forward(model, b, needs_contrast=needs_contrast,
-                                        jitter=r.data.contrast_jitter,
-                                        fallback_contrast=r.loss.contrast,
-                                        timing=bool(getattr(bare, "timing", False)))
-                residuals = residuals.float()
-                outputs = {"residuals": residuals, "latent": reconstruct(b["blurry"], residuals)}
-                loss, _ = total_loss(outputs, b, r)
-                optimizer.zero_grad(set_to_none=True)
-                if scaler is not None:
-                    scaler.scale(loss).backward()
-                    scaler.unscale_(optimizer)
-                else:
-                    loss.backward()
-                if r.optim.grad_clip > 0:
-                    torch.nn.utils.clip_grad_norm_(bare.parameters(), r.optim.grad_clip)
-                if scaler is not None:
-                    scaler.step(optimizer)
-                    scaler.update()
-                else:
-                    optimizer.step()
-                if ema is not None:
-                    ema.update(bare)
-                value = float(loss.detach())
-                if not math.isfinite(value) and scaler is None:
-                    raise TrmdError(f"training diverged at step {step + 1} (loss {value})",
-                                    hint="lower optim.lr or raise optim.warmup_steps")
-                step += 1
-                acc[0] += value
-                acc[1] += 1
-                step_time = clock() - ts
-                reporter.step(step=step, loss=value, lr=lr)
-
-                logged = step % tr.log_every == 0 or step == total
-                if logged:
-                    s, n = ddp.all_reduce_sum(dist, [acc[0], float(acc[1])])
-                    row(s / max(n, 1), lr, False)
-                    acc[:] = [0.0, 0]
-                if step % tr.val_every == 0 or step == total:
-                    validate()
-                    row(None, lr, True)
-                # stop while one more step, a validation and two saves still fit the budget;
-                # every process must agree, so the clocks' verdicts are summed over processes
-                out_of_time = bool(budget) and (
-                    elapsed() + step_time + val_time + 2 * ckpt_time + 1.0 >= budget)
-                due = bool(tr.checkpoint_minutes) and (
-                    clock() - last_ckpt >= tr.checkpoint_minutes * 60)
-                out_of_time, timed = (v > 0 for v in ddp.all_reduce_sum(
-                    dist, [float(out_of_time), float(due)]))
-                if out_of_time and step < total:
-                    stopped = "time_budget"
-                session_over = session_steps is not None and step - start_step >= session_steps
-                if session_over and stopped == "done" and step < total:
-                    stopped = "session_limit"
-                if stopped == "time_budget" and last_val["step"] != step:
-                    validate()
-                    row(None, lr, True)
-                if (step % tr.checkpoint_every == 0 or timed or step == total
-                        or stopped != "done"):
-                    save()
-                elif logged and dist.is_main:
-                    _write_outputs(run_dir, history, r.name)
-                if stopped != "done" or step >= total:
-                    break
-    finally:
-        reporter.close()
-
-    if stopped in ("done", "time_budget") and dist.is_main:
-        final_path = _save_weights(run_dir / "final.safetensors", judged, r, data_paths, plan,
-                                   step, total, bpe, elapsed(), last_val, best)
-        if best_path is None and (run_dir / "best.safetensors").exists():
-            best_path = run_dir / "best.safetensors"
-    ddp.barrier(dist)
-    return TrainResult(run_dir=run_dir, steps=step, total_steps=total, epochs=step / bpe,
-                       seconds=elapsed(), stopped=stopped, val_psnr_mid=last_val["psnr_mid"],
-                       val_psnr_seq=last_val["psnr_seq"], best_val_psnr_mid=best["psnr_mid"],
-                       best_step=best["step"], final_weights=final_path, best_weights=best_path,
-                       notes=notes)
+        write_json(run_dir / "recipe.json", {"recipe": recipe_record(r), "data": data_paths,
+                                             "validation": plan.val_record,
+                                             "world": dist.world})
+    run = Run(recipe=r, plan=plan, data_paths=data_paths, run_dir=run_dir, dist=dist,
+              model=model, bare=bare, optimizer=optimizer, scaler=scaler, ema=ema,
+              amp_dtype=amp_dtype, val_dtype=val_dtype, total=total, bpe=bpe,
+              reporter=reporter, clock=clock, t0=t_start)
+    return run, state
 
 
-def _write_outputs(run_dir: Path, history: Sequence[dict], title: str) -> None:
-    from .plots import write_curve
+def _prepare_run_dir(run_dir: Path, fresh: bool) -> None:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if fresh:  # no stale outputs of an earlier run stay behind
+        for name in RUN_FILES:
+            (run_dir / name).unlink(missing_ok=True)
+    for name in RUN_FILES:  # temporaries of a process killed (-9) while writing
+        stem = Path(name).stem
+        for tmp in run_dir.glob(f".{stem}.*.tmp*"):
+            tmp.unlink(missing_ok=True)
 
-    _write_log(run_dir / "log.csv", history)
-    write_curve(run_dir / "curve.png", history, title=title)
+
+def _grow_notes(grown: Grown) -> list[str]:
+    """What to tell about a network grown from ``init_weights``."""
+    notes = []
+    # a wider U-Net grows every layer, the refinement's included: that one note says it all
+    added = [] if grown.widened else sorted({k.split(".")[0] for k in grown.identity})
+    if added:
+        notes.append(f"`init_weights` had no {', '.join(added)} layers: they start as an "
+                     "identity, so the run starts from exactly what those weights computed")
+    if grown.timing:
+        notes.append("`init_weights` had no timing inputs: their weights start at zero, "
+                     "so the run starts from exactly what those weights computed")
+    if grown.widened:
+        notes.append("`init_weights` has a narrower U-Net: the new channels start random, "
+                     "their weights into the old ones at zero, so the run starts from "
+                     "exactly what those weights computed")
+    return notes
 
 
-def _load_init(model: torch.nn.Module, path: str | Path, recipe: Recipe) -> list[str]:
-    """Start from a weights file, or from the weights in another run's checkpoint; the names
-    of layers the weights lacked and that start as an identity (:func:`load_init_state`)."""
-    from ..weights import load_weights
+def _load_init(model: torch.nn.Module, path: str | Path, recipe: Recipe) -> Grown:
+    """Start from a weights file, or from the weights in another run's checkpoint; what was
+    grown to fit (:func:`~trmd_cli.models.grow.load_grown`)."""
+    from ..models.weights import load_weights
     from .checkpoint import is_checkpoint, load_checkpoint_weights, load_init_state
 
     if is_checkpoint(path):
-        return list(load_checkpoint_weights(path, model).get("grown", []))
+        return load_checkpoint_weights(path, model)["grown"]
 
     src, meta = load_weights(path, expect_n=recipe.model.n,
                              expect_channels=recipe.model.channels)
@@ -627,21 +462,3 @@ def _load_init(model: torch.nn.Module, path: str | Path, recipe: Recipe) -> list
                            f"({str(e).splitlines()[0]})", path=path,
                            hint=f"they are for {meta.get('architecture')}: set model.name and "
                            "model.args to match") from None
-
-
-def _save_weights(path: Path, model: torch.nn.Module, recipe: Recipe, data: list[str],
-                  plan: DataPlan, step: int, total: int, bpe: int, seconds: float,
-                  last_val: dict, best: dict) -> Path:
-    from ..weights import save_weights
-
-    figures = {"steps": step, "total_steps": total, "epochs": step / bpe,
-               "train_seconds": round(seconds, 1),
-               "val_psnr_mid": last_val["psnr_mid"], "val_psnr_seq": last_val["psnr_seq"],
-               "val_step": last_val["step"], "best_val_psnr_mid": best["psnr_mid"],
-               "best_step": best["step"], "validation": plan.val_source}
-    meta = {"recipe": recipe.to_dict(), "figures": figures,
-            "training_data": [Path(p).name for p in data]}
-    with contextlib.suppress(AttributeError):
-        if not getattr(model, "variant", None):
-            model.variant = recipe.model.name
-    return save_weights(path, model, meta=meta)

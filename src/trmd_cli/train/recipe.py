@@ -208,7 +208,7 @@ def load_recipe(path: str | Path | None = None, overrides: list[str] | None = No
     path = default_recipe_path() if path is None else Path(path)
     if not path.is_file():
         raise InputError("recipe not found", path=path,
-                         hint="give a TOML file, or omit --recipe for the default")
+                         hint="give a TOML file, or omit `recipe` for the default")
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as e:

@@ -5,7 +5,8 @@ and string metadata saying what they are:
 
 ==================  =====================================================================
 ``format``          ``"trmd-weights"``; ``format_version`` ``"1"``
-``architecture``    registered variant name (``trmd_small`` …), informative
+``architecture``    registered variant name (``trmd_small`` …), informative; old names are
+                    read through :data:`~trmd_cli.models.renet.ALIASES`
 ``model_class``     ``"RENet"``
 ``args``            JSON of every constructor argument: the model is rebuilt from these
 ``n``, ``channels`` N and colour channels, repeated for quick checks
@@ -16,6 +17,9 @@ and string metadata saying what they are:
 
 Further keys given in ``meta`` are stored JSON-encoded. The shipped default lives in the package
 at ``trmd_cli/weights/trmd_default.safetensors`` and is found through importlib.resources.
+
+Reading metadata (:func:`read_metadata`, :func:`describe_weights`) needs no torch; torch is
+imported only when weights are really saved or loaded.
 """
 
 from __future__ import annotations
@@ -28,11 +32,11 @@ from math import prod
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .errors import InputError, WeightsError
-from .write import atomic_path
+from ..errors import InputError, WeightsError
+from ..write import atomic_path
 
 if TYPE_CHECKING:  # torch stays unimported until weights are really saved or loaded
-    from .models.renet import RENet
+    from .renet import RENet
 
 __all__ = [
     "FORMAT",
@@ -55,7 +59,7 @@ DEFAULT_WEIGHTS = "trmd_default.safetensors"
 _PLAIN = ("format", "format_version", "architecture", "model_class", "dtype", "trmd_version")
 _INTS = ("n", "channels")
 _RESERVED = (*_PLAIN, *_INTS, "args")
-_NO_WEIGHTS_HINT = "pass --weights PATH to a .safetensors file written by `trmd train`"
+_NO_WEIGHTS_HINT = "pass `weights` (a .safetensors file written by `trmd train`)"
 
 
 def default_weights_path() -> Path:
@@ -86,7 +90,7 @@ def resolve_device(device: str = "auto"):
     except RuntimeError:
         raise InputError(f"unknown device {device!r}", hint="use auto, cpu or cuda") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("CUDA is not available on this machine", hint="use --device cpu")
+        raise InputError("CUDA is not available on this machine", hint="use `device='cpu'`")
     return dev
 
 
@@ -115,7 +119,7 @@ def save_weights(path: str | Path, model: RENet, *, meta: dict[str, Any] | None 
     import torch
     from safetensors.torch import save
 
-    from . import __version__
+    from .. import __version__
 
     path = Path(path)
     if not path.parent.is_dir():
@@ -214,7 +218,8 @@ def _existing(path: str | Path | None) -> Path:
     p = Path(path)
     if not p.exists():
         raise WeightsError("weights file not found", path=p,
-                           hint="check the path, or omit --weights to use the shipped weights")
+                           hint="check the path, or leave out `weights` to use the shipped "
+                           "weights")
     if not p.is_file():
         raise WeightsError("weights path is not a file", path=p, hint=_NO_WEIGHTS_HINT)
     return p
@@ -284,11 +289,18 @@ def describe_weights(path: str | Path | None = None) -> dict[str, Any]:
     """
     from safetensors import safe_open
 
+    from .aliases import current_name
+
     p = _existing(path)
     meta = read_metadata(p)
+    prefix = ""
+    if meta.get("checkpoint"):  # its network's tensors only; the variant's full arguments
+        meta, prefix = _resolve_checkpoint(meta, p)
     with safe_open(str(p), framework="numpy") as fh:
         params = 0
         for k in fh.keys():
+            if not k.startswith(prefix):
+                continue
             if k.endswith(("running_mean", "running_var", "num_batches_tracked")):
                 continue  # BatchNorm statistics are buffers, not parameters
             shape = fh.get_slice(k).get_shape()
@@ -305,7 +317,10 @@ def describe_weights(path: str | Path | None = None) -> dict[str, Any]:
         "file": str(p),
         "sha256": weights_hash(p),
         "size_mib": round(p.stat().st_size / 2**20, 2),
-        "architecture": meta.get("architecture"),
+        "architecture": current_name(str(meta.get("architecture"))),
+        # the name the file records, when it is an old one that now stands for the above
+        "recorded_as": meta.get("architecture")
+        if current_name(str(meta.get("architecture"))) != meta.get("architecture") else None,
         "parameters": params,
         "dtype": meta.get("dtype"),
         "n": meta.get("n"),
@@ -315,14 +330,45 @@ def describe_weights(path: str | Path | None = None) -> dict[str, Any]:
         "training_data": meta.get("training_data"),
         "trmd_version": meta.get("trmd_version"),
         "validation": val,
+        "checkpoint": meta.get("checkpoint"),
     }
 
 
+#: the metadata key of a training checkpoint (``trmd_cli.train.checkpoint``)
+_CHECKPOINT_KEY = "trmd_checkpoint"
+
+
+def _checkpoint_meta(raw: dict[str, str], path: Path) -> dict[str, Any]:
+    """A training checkpoint described as weights: what ``trmd train`` leaves after
+    ``--stop-after`` or an interruption is as usable as its final weights. The architecture
+    comes from the run's recipe; ``args`` holds the recipe's own model arguments (the full set
+    is the variant's with these applied: :func:`load_weights` resolves it)."""
+    try:
+        doc = json.loads(raw[_CHECKPOINT_KEY])
+        recipe = doc.get("recipe") or {}
+        model = recipe.get("model") or {}
+        name = str(model["name"])
+        n, channels = int(model.get("n", 3)), int(model.get("channels", 1))
+        args = dict(model.get("args") or {})
+    except (ValueError, KeyError, TypeError, AttributeError):
+        raise WeightsError("a training checkpoint without a readable recipe", path=path,
+                           hint="the file is corrupt: resume the run or train again") from None
+    return {"format": FORMAT, "architecture": name, "model_class": "RENet",
+            "args": {**args, "n": n, "channels": channels}, "n": n, "channels": channels,
+            "recipe": recipe,
+            "training_data": [Path(str(d)).name for d in doc.get("data") or []],
+            "figures": {"step": doc.get("step"), "total_steps": doc.get("total_steps"),
+                        "last_val": doc.get("last_val")},
+            "checkpoint": {"step": doc.get("step"), "variant_args": False}}
+
+
 def _decode(raw: dict[str, str], path: Path) -> dict[str, Any]:
+    if _CHECKPOINT_KEY in raw:
+        return _checkpoint_meta(raw, path)
     if raw.get("format") != FORMAT or "args" not in raw:
         raise WeightsError("safetensors file without trmd metadata (architecture, args, N)",
                            path=path, hint="use weights written by `trmd train` "
-                           "(trmd_cli.weights.save_weights)")
+                           "(trmd_cli.models.weights.save_weights)")
     if raw.get("format_version") != FORMAT_VERSION:
         raise WeightsError(f"weights format version {raw.get('format_version')!r} is not "
                            f"supported (this trmd reads version {FORMAT_VERSION})", path=path,
@@ -342,6 +388,30 @@ def _decode(raw: dict[str, str], path: Path) -> dict[str, Any]:
     if not isinstance(meta["args"], dict):
         raise WeightsError("metadata 'args' is not a JSON object", path=path)
     return meta
+
+
+def _resolve_checkpoint(meta: dict[str, Any], path: Path) -> tuple[dict[str, Any], str]:
+    """A checkpoint's full architecture arguments (the variant's, with the recipe's applied)
+    and the prefix of the tensors to load: the weight average when the run kept one (what it
+    validated and would have shipped), else the model's."""
+    import torch
+    from safetensors import safe_open
+
+    from .registry import create_model
+
+    args = dict(meta["args"])
+    try:
+        with torch.device("meta"):
+            net = create_model(meta["architecture"], **args)
+    except (TypeError, ValueError, RuntimeError, InputError) as e:
+        raise WeightsError(f"the checkpoint's recipe does not describe a network this version "
+                           f"builds ({e})", path=path, hint="upgrade trmd") from None
+    with safe_open(str(path), framework="numpy") as fh:
+        prefix = "ema/" if any(k.startswith("ema/") for k in fh.keys()) else "model/"
+    meta = {**meta, "args": dict(net.args),
+            "checkpoint": {**meta["checkpoint"], "weights": prefix.rstrip("/"),
+                           "variant_args": True}}
+    return meta, prefix
 
 
 def load_weights(path: str | Path | None = None, *, device: str = "cpu",
@@ -366,17 +436,21 @@ def load_weights(path: str | Path | None = None, *, device: str = "cpu",
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    from .models.renet import RENet
+    from .registry import canonical_name
+    from .renet import RENet
 
     p = _existing(path)
     meta = read_metadata(p)
+    prefix = ""
+    if meta.get("checkpoint"):
+        meta, prefix = _resolve_checkpoint(meta, p)
     if meta.get("model_class") != "RENet":
         raise WeightsError(f"weights are for model class {meta.get('model_class')!r}, not RENet",
                            path=p, hint=_NO_WEIGHTS_HINT)
     n, channels = meta["args"].get("n"), meta["args"].get("channels")
     if expect_n is not None and n != expect_n:
         raise WeightsError(f"weights are for N = {n}, not N = {expect_n}", path=p,
-                           hint=f"pass --n {n}, or weights trained for N = {expect_n}")
+                           hint=f"pass `n={n}`, or weights trained for N = {expect_n}")
     if expect_channels is not None and channels != expect_channels:
         kinds = {1: "gray", 3: "RGB"}
         raise WeightsError(f"weights are for {channels}-channel ({kinds.get(channels, '?')}) "
@@ -385,7 +459,7 @@ def load_weights(path: str | Path | None = None, *, device: str = "cpu",
     # The metadata decides the architecture, so a stranger's file decides how much memory it
     # takes: build it on the meta device first (shapes only, nothing allocated) and check it
     # against the tensors the file really holds before building it for real.
-    stored = _stored_shapes(p)
+    stored = {k[len(prefix):]: v for k, v in _stored_shapes(p).items() if k.startswith(prefix)}
     blocks = meta["args"].get("num_res_blocks")
     if isinstance(blocks, int) and blocks > len(stored):  # each block holds several tensors
         raise WeightsError(f"metadata asks for {blocks} residual blocks but the file holds "
@@ -415,13 +489,16 @@ def load_weights(path: str | Path | None = None, *, device: str = "cpu",
                                f"needs {expected[name]}", path=p,
                                hint="the metadata and tensors disagree")
     model = RENet(**meta["args"])  # now no larger than the tensors in the file
-    model.variant = meta.get("architecture")
+    arch = meta.get("architecture")
+    model.variant = canonical_name(arch) if isinstance(arch, str) else None
 
     try:
         state = load_file(str(p), device="cpu")
     except (SafetensorError, OSError) as e:
         raise WeightsError(f"cannot read tensors ({str(e).splitlines()[0]})", path=p,
                            hint="the file is truncated or corrupt: copy it again") from None
+    if prefix:  # a checkpoint: its model's tensors only, not the optimiser's or the RNG's
+        state = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
     for name, t in state.items():
         if t.is_floating_point() and not torch.isfinite(t).all():
             raise WeightsError(f"tensor {name} holds NaN or infinite values", path=p,

@@ -1,0 +1,195 @@
+"""The per-frame loop: run a method over every frame of a source, one exposure at a time.
+
+Never prints: warnings travel with each :class:`FrameResult`; the CLI says them. A window
+without events is passed through (the blurry frame repeated), not an error: a few frames of a
+long recording often miss their events.
+
+Binned items (:class:`~trmd_cli.read.folders.BinnedWindow`: no event times) go through the same
+loop to the method's ``from_bins``; their instants are fractions of the exposure.
+:func:`binned_note` is the one line a run on them says.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from .edi import check_blurry
+from .errors import InputError
+from .events import Exposure
+from .methods import Estimate, Method
+from .read.folders import BinnedSource, BinnedWindow, FrameWindow
+
+__all__ = ["FrameResult", "ContrastNotes", "deblur_frames", "exposure_instants", "binned_note"]
+
+
+@dataclass(frozen=True, eq=False)
+class FrameResult:
+    """One deblurred frame.
+
+    Attributes:
+        index: frame number; name: for folder names and messages.
+        blurry: (H, W[, 3]) float32 [0, 1] input.
+        exposure: its window (µs, time offset applied); None for binned events, which have no
+            event clock (the instants are then fractions of the exposure, 0 = start, 1 = end).
+        estimate: the latent frames (see :class:`~trmd_cli.methods.Estimate`).
+        num_events: events in the window; binned events: Σ|count| over the frame's bins, a
+            lower bound on them (a bin holds net counts).
+        passthrough: the window held no events: ``estimate.frames`` repeat the blurry frame.
+        warnings: messages for the user.
+    """
+
+    index: int
+    name: str
+    blurry: np.ndarray
+    exposure: Exposure | None
+    estimate: Estimate
+    num_events: int
+    passthrough: bool = False
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def frames(self) -> np.ndarray:
+        return self.estimate.frames
+
+    @property
+    def instants_us(self) -> np.ndarray:
+        return self.estimate.instants_us
+
+    @property
+    def binned(self) -> bool:
+        """From binned events: ``instants_us`` are fractions of the exposure, not µs."""
+        return self.exposure is None
+
+    @property
+    def middle(self) -> np.ndarray:
+        """The frame nearest to mid-exposure."""
+        mid = 0.5 if self.exposure is None else self.exposure.mid_us
+        k = int(np.abs(self.instants_us - mid).argmin())
+        return self.frames[k]
+
+
+def exposure_instants(exposure: Exposure, k: int) -> np.ndarray:
+    """K instants spread evenly over the window, ends included (K = 1: the middle), µs."""
+    if k < 1:
+        raise InputError(f"`per_exposure` must be ≥ 1, got {k}")
+    if k == 1:
+        return np.array([exposure.mid_us])
+    return exposure.start_us + np.arange(k) * (exposure.duration_us / (k - 1))
+
+
+def deblur_frames(source: Iterable[FrameWindow | BinnedWindow], method: Method, *,
+                  per_exposure: int | None = None) -> Iterator[FrameResult]:
+    """Run ``method`` on every frame of ``source``.
+
+    Args:
+        per_exposure: frames per exposure; None = the method's 2N+1 at ``t0 + k·T/2N``.
+            Binned events have no times to place others at: only 2N+1 (or None) is allowed.
+    Yields:
+        :class:`FrameResult` in the source's order. A window without events (binned: bins
+        that are all zero) is passed through (the blurry frame repeated) with a warning.
+    Raises:
+        InputError: a binned item with ``per_exposure`` other than 2N+1.
+    """
+    for item in source:
+        if isinstance(item, BinnedWindow):
+            yield _from_bins(item, method, per_exposure)
+            continue
+        frame, events = item.frame, item.events
+        exposure = frame.exposure
+        blurry = check_blurry(frame.image, events.width, events.height, frame.name)
+        inst = exposure.instants_us(method.n) if per_exposure is None else \
+            exposure_instants(exposure, per_exposure)
+        inside = events.slice(exposure.start_us, exposure.end_us + 1)
+        if len(inside) == 0:
+            frames = np.repeat(blurry[None], len(inst), axis=0)
+            yield FrameResult(frame.index, frame.name, blurry, exposure,
+                              Estimate(frames, inst, None), 0, True,
+                              (f"frame {frame.name}: no events in its exposure window "
+                               f"[{exposure.start_us}, {exposure.end_us}] µs; passed through "
+                               "unchanged",))
+            continue
+        est = method(blurry, events, exposure, inst)
+        yield FrameResult(frame.index, frame.name, blurry, exposure, est, len(inside), False)
+
+
+def _from_bins(item: BinnedWindow, method: Method, per_exposure: int | None) -> FrameResult:
+    """One binned frame through ``method.from_bins`` at its 2N+1 instants k/2N."""
+    frame, bins = item.frame, item.bins
+    k = 2 * method.n + 1
+    if per_exposure is not None and per_exposure != k:
+        raise InputError(f"binned events have no event times to place "
+                         f"`per_exposure={per_exposure}` frames at",
+                         hint=f"leave out `per_exposure`: binned events give the 2N+1 = {k} "
+                              "frames at the instants k/2N")
+    blurry = check_blurry(frame.image, bins.shape[2], bins.shape[1], frame.name)
+    count = int(np.abs(bins.astype(np.int64, copy=False)).sum()) if bins.dtype.kind in "iu" \
+        else int(np.abs(bins).sum())
+    if count == 0:
+        fractions = np.linspace(0.0, 1.0, k)
+        frames = np.repeat(blurry[None], k, axis=0)
+        return FrameResult(frame.index, frame.name, blurry, None,
+                           Estimate(frames, fractions, None), 0, True,
+                           (f"frame {frame.name}: its bins hold no events; passed through "
+                            "unchanged",))
+    est = method.from_bins(blurry, bins)
+    return FrameResult(frame.index, frame.name, blurry, None, est, count, False)
+
+
+def binned_note(source: BinnedSource, method: Method, *, stream: bool = False) -> str:
+    """The one line a run on binned events says: what the data lacks and what that costs.
+
+    Args:
+        source: the binned frames. method: the method that runs on them.
+        stream: for a continuous stream (``trmd hfr``): say that there is no gap filling.
+    """
+    b, two_n = source.bins_per_frame, 2 * method.n
+    parts = [f"{source.path.name}: binned events ({b} bins per frame, no event times): the "
+             f"{two_n + 1} frames sit at fractions k/{two_n} of each exposure"]
+    if b % two_n:
+        parts.append(f"{b} bins do not split into {two_n} equal parts, so the bins that "
+                     "straddle an instant are taken as their events spread evenly")
+    if method.needs.timing:
+        parts.append("the network's timing inputs get the counts")
+    parts.append("hot pixels are not masked (the bins hold no per-event information)")
+    if stream:
+        parts.append("the exposures' frames only, in order: in-between frames and gap "
+                     "filling need event times")
+    return "; ".join(parts)
+
+
+class ContrastNotes:
+    """What the frames of a run said about their contrast threshold, told once: one line per
+    kind of note with the number of frames it concerns, not one line per frame (a recording of
+    hundreds of dark frames would otherwise print hundreds of lines).
+
+    Usage: ``notes.add(result)`` for every :class:`FrameResult`, then ``notes.lines()``.
+    """
+
+    def __init__(self) -> None:
+        self.frames = 0
+        self._fallback: list[tuple[str, str]] = []
+        self._edge: list[tuple[str, str]] = []
+
+    def add(self, result: FrameResult) -> None:
+        self.frames += 1
+        est = result.estimate
+        if est.contrast_note is None:
+            return
+        kind = self._fallback if not est.contrast_reliable else self._edge
+        kind.append((result.name, est.contrast_note))
+
+    def lines(self) -> list[str]:
+        out = []
+        for notes in (self._fallback, self._edge):
+            if not notes:
+                continue
+            name, note = notes[0]
+            if len(notes) == 1:
+                where = f"frame {name}"
+            else:
+                where = f"{len(notes)} of {self.frames} frames (the first, {name})"
+            out.append(f"{where}: {note} — set `contrast` if you know it")
+        return out

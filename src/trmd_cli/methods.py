@@ -1,0 +1,393 @@
+"""Deblurring methods: one small protocol, one registry.
+
+A method turns a blurry frame and the events of its exposure into latent frames. Every method is
+a :class:`Method`:
+
+* it declares what it needs (:class:`MethodNeeds`: the contrast threshold c, the voxels' timing
+  levels, trained weights);
+* ``prepare`` settles what one exposure needs before the method runs — the window's events
+  sorted per pixel, c (given, or estimated as EDI does), the hot-pixel mask — as a
+  :class:`Prepared`;
+* ``__call__`` runs it on raw events (instants in µs), ``from_bins`` on binned data (signed
+  counts of M equal bins spanning the exposure, no event times: GOPRO-style voxels, LEDVDI's
+  bins), both returning an :class:`Estimate`.
+
+:func:`make_method` builds the method a :class:`MethodConfig` names from :data:`REGISTRY`; a new
+method is a class with a ``from_config`` class method and one entry there — ``trmd deblur``,
+``trmd hfr`` and ``trmd eval`` then offer it. :data:`DEFAULT_METHOD` is the one constant to flip
+when the default changes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from .edi import EdiBins, EdiEvents, check_blurry, hot_pixel_mask, propagate
+from .errors import InputError, ShapeError
+from .events import EventStream, Exposure
+from .precision import PRECISIONS
+from .threshold import search_contrast
+
+__all__ = [
+    "DEFAULT_METHOD",
+    "DEFAULT_N",
+    "METHODS",
+    "MethodConfig",
+    "MethodNeeds",
+    "Prepared",
+    "Estimate",
+    "Method",
+    "EdiMethod",
+    "TrmdMethod",
+    "REGISTRY",
+    "make_method",
+    "unavailable",
+]
+
+#: the method used when none is asked for
+DEFAULT_METHOD = "trmd"
+#: N used by EDI when none is given (2N+1 = 7 frames)
+DEFAULT_N = 3
+
+
+@dataclass(frozen=True)
+class MethodConfig:
+    """How to deblur.
+
+    Attributes:
+        method: a name of :data:`METHODS`.
+        n: 2N+1 latent frames; None = 3 for EDI, the weights' N for TRMD.
+        contrast: EDI's contrast threshold c; None = estimate it per frame. TRMD uses it as an
+            input when its weights take one (``prior="edi_c"``, as the shipped default) and to
+            place frames at instants between its own (event integration).
+        hot_pixels: ignore the events of hot pixels (see :func:`trmd_cli.edi.hot_pixel_mask`).
+        weights, device, threads, precision: TRMD only (see ``TrmdEstimator.load``;
+            ``precision="auto"`` runs the network in bfloat16 on CPUs that compute it natively
+            — on the pinned validation set within 0.003 dB of float32).
+        settle_contrast: settle c for every frame even when the method itself would not need
+            it, so that it travels with each :class:`Estimate` (high-frame-rate streams fill
+            the gaps between exposures by event integration, which needs it).
+    """
+
+    method: str = DEFAULT_METHOD
+    n: int | None = None
+    contrast: float | None = None
+    hot_pixels: bool = True
+    weights: str | Path | None = None
+    device: str = "auto"
+    threads: int | None = None
+    precision: str = "auto"
+    settle_contrast: bool = False
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise InputError(f"unknown method {self.method!r}",
+                             hint="use `method` " + " or ".join(METHODS))
+        if self.n is not None and self.n < 1:
+            raise InputError(f"N must be ≥ 1, got {self.n}", hint="use `n=3` (7 latent frames)")
+        if self.contrast is not None and not (np.isfinite(self.contrast) and self.contrast > 0):
+            raise InputError(f"`contrast` must be a positive number or 'auto', got "
+                             f"{self.contrast}")
+        if self.precision not in PRECISIONS:
+            raise InputError(f"unknown precision {self.precision!r}",
+                             hint="use `precision` " + ", ".join(PRECISIONS))
+
+
+@dataclass(frozen=True)
+class MethodNeeds:
+    """What a method needs for every frame.
+
+    Attributes:
+        contrast: the contrast threshold c, settled by ``prepare`` for every frame.
+        timing: the voxels' sub-bin timing levels (:func:`trmd_cli.voxel.scer_levels`); on
+            binned data the counts stand in for them.
+        weights: trained weights, read when the method is built.
+    """
+
+    contrast: bool = False
+    timing: bool = False
+    weights: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    """One exposure, settled before a method runs.
+
+    Attributes:
+        model: the window's events sorted per pixel (:class:`~trmd_cli.edi.EdiEvents`), or the
+            binned twin (:class:`~trmd_cli.edi.EdiBins`) for binned data; ready for any c.
+        contrast: c, the log-intensity step of one event.
+        estimated: c came from :func:`trmd_cli.threshold.search_contrast` (else it was given).
+        reliable: False when the window held too few events to estimate c (a default was used).
+        hot: (H, W) bool, the pixels whose events are ignored; None when none are.
+        note: what the user should know about c: why a default was used, or that the estimate
+            sits at the search range's edge; None when there is nothing to say.
+    """
+
+    model: EdiEvents | EdiBins
+    contrast: float
+    estimated: bool = False
+    reliable: bool = True
+    hot: np.ndarray | None = None
+    note: str | None = None
+
+    @property
+    def hot_pixels(self) -> int:
+        """Number of pixels whose events are ignored."""
+        return 0 if self.hot is None else int(self.hot.sum())
+
+
+@dataclass(frozen=True, eq=False)
+class Estimate:
+    """Latent frames of one exposure.
+
+    Attributes:
+        frames: (K, H, W[, 3]) float32 [0, 1] intensity, not clipped.
+        instants_us: (K,) float64, the time of each frame: µs, or fractions of the exposure
+            (0 = start, 1 = end) for binned data.
+        contrast: c used (EDI; TRMD's input or its in-between frames); None if none was needed.
+        contrast_estimated: c came from :func:`trmd_cli.threshold.search_contrast`.
+        contrast_reliable: False when too few events to estimate (a default was used).
+        hot_pixels: number of pixels whose events were ignored.
+        contrast_note: see :attr:`Prepared.note`.
+    """
+
+    frames: np.ndarray
+    instants_us: np.ndarray
+    contrast: float | None
+    contrast_estimated: bool = False
+    contrast_reliable: bool = True
+    hot_pixels: int = 0
+    contrast_note: str | None = None
+
+
+class Method(Protocol):
+    """A deblurring method: blurry frame + the events of its exposure → latent frames."""
+
+    name: str
+    #: 2N+1 latent frames per exposure at its own instants
+    n: int
+    needs: MethodNeeds
+    weights_hash: str | None
+    #: the network's arithmetic as run; None for weight-free methods
+    precision: str | None
+
+    def prepare(self, blurry: np.ndarray, events: EventStream | np.ndarray,
+                exposure: Exposure | None = None) -> Prepared:
+        """Settle one exposure: ``events`` is the raw stream with ``exposure`` its window (µs),
+        or (M, H, W) signed counts of M equal bins spanning the exposure."""
+        ...
+
+    def __call__(self, blurry: np.ndarray, events: EventStream, exposure: Exposure,
+                 instants_us: np.ndarray | None = None) -> Estimate:
+        """Latent frames at ``instants_us`` (µs; None = the method's 2N+1 instants)."""
+        ...
+
+    def from_bins(self, blurry: np.ndarray, bins: np.ndarray,
+                  fractions: np.ndarray | None = None) -> Estimate:
+        """Latent frames from binned data — ``bins`` (M, H, W) signed counts of M equal bins
+        spanning the exposure, in time order — at ``fractions`` of the exposure (None = the
+        2N+1 instants k/2N)."""
+        ...
+
+
+def _contrast_note(est) -> str | None:
+    """What to tell the user about an estimated c (a :class:`ContrastEstimate`)."""
+    from .threshold import CONTRAST_BOUNDS
+
+    if not est.reliable:
+        return f"{est.reason}; used the default c = {est.contrast:.3g}"
+    if est.at_bound:
+        lo, hi = CONTRAST_BOUNDS
+        side = "lower" if est.contrast < (lo * hi) ** 0.5 else "upper"
+        return (f"the estimated c = {est.contrast:.3f} sits at the {side} edge of the search "
+                f"range {lo:g}–{hi:g}: the sensor's threshold may lie beyond it")
+    return None
+
+
+def _bin_grid(n: int) -> np.ndarray:
+    """The 2N+1 latent instants of binned data, as fractions of the exposure."""
+    return np.linspace(0.0, 1.0, 2 * n + 1)
+
+
+def _check_bins(bins: np.ndarray) -> np.ndarray:
+    bins = np.asarray(bins)
+    if bins.ndim != 3 or bins.shape[0] == 0:
+        raise ShapeError(f"bins have shape {bins.shape}, expected (M, H, W)")
+    return bins
+
+
+class EdiMethod:
+    """EDI with a given or per-frame estimated contrast threshold."""
+
+    name = "edi"
+    needs = MethodNeeds(contrast=True)
+    weights_hash = None
+    precision = None
+    #: what the method is, for evaluation reports
+    summary = ("EDI as `trmd deblur --method edi` runs it: contrast estimated per frame, hot "
+               "pixels ignored (binned data: events spread evenly within each bin)")
+
+    def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
+                 hot_pixels: bool = True) -> None:
+        self.n = n
+        self.contrast = contrast
+        self.hot_pixels = hot_pixels
+
+    @classmethod
+    def from_config(cls, config: MethodConfig) -> EdiMethod:
+        return cls(config.n or DEFAULT_N, config.contrast, config.hot_pixels)
+
+    def prepare(self, blurry, events, exposure=None) -> Prepared:
+        """Sort the window's events per pixel (or integrate the bins) and settle c: the given
+        one, else :func:`~trmd_cli.threshold.search_contrast` on this frame. Binned data has no
+        hot-pixel mask (the bins hold no per-event information to judge by)."""
+        if isinstance(events, EventStream):
+            if exposure is None:
+                raise InputError("raw events need their exposure window")
+            hot = hot_pixel_mask(events, exposure) if self.hot_pixels else None
+            model: EdiEvents | EdiBins = EdiEvents.build(events, exposure, hot)
+        else:
+            hot, model = None, EdiBins.build(_check_bins(events))
+        if self.contrast is not None:
+            return Prepared(model, self.contrast, hot=hot)
+        est = search_contrast(blurry, model)
+        return Prepared(model, est.contrast, True, est.reliable, hot, _contrast_note(est))
+
+    def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
+        b = check_blurry(blurry, events.width, events.height)
+        inst = exposure.instants_us(self.n) if instants_us is None else \
+            np.asarray(instants_us, np.float64)
+        prep = self.prepare(b, events, exposure)
+        fr = (inst - exposure.start_us) / exposure.duration_us
+        return Estimate(prep.model.latent(b, fr, prep.contrast), inst, prep.contrast,
+                        prep.estimated, prep.reliable, prep.hot_pixels, prep.note)
+
+    def from_bins(self, blurry, bins, fractions=None) -> Estimate:
+        """EDI with the log intensity changing linearly within each bin (see
+        :class:`~trmd_cli.edi.EdiBins`)."""
+        bins = _check_bins(bins)
+        b = check_blurry(blurry, bins.shape[2], bins.shape[1])
+        fr = _bin_grid(self.n) if fractions is None else np.asarray(fractions, np.float64)
+        prep = self.prepare(b, bins)
+        return Estimate(prep.model.latent(b, fr, prep.contrast), fr, prep.contrast,
+                        prep.estimated, prep.reliable, contrast_note=prep.note)
+
+
+class TrmdMethod:
+    """TRMD (RE-Net residuals + reconstruction). Weights that take the threshold c get it given
+    or estimated as EDI's; instants other than the 2N+1 are propagated from the nearest
+    reconstructed frame by event integration (with the same c)."""
+
+    name = "trmd"
+    #: known before the weights are read; an instance's ``needs`` also says what they take
+    needs = MethodNeeds(weights=True)
+    summary = "RE-Net residuals + two-stage reconstruction, as `trmd deblur --method trmd`"
+
+    def __init__(self, n: int | None = None, weights: str | Path | None = None,
+                 device: str = "auto", threads: int | None = None,
+                 contrast: float | None = None, hot_pixels: bool = True,
+                 precision: str = "auto", *, settle_contrast: bool = False) -> None:
+        from .models.estimator import TrmdEstimator
+
+        #: the loaded network (:class:`~trmd_cli.models.estimator.TrmdEstimator`)
+        self.model = TrmdEstimator.load(weights, device=device, threads=threads, expect_n=n,
+                                        precision=precision)
+        self.n = self.model.n
+        self.weights_hash = self.model.weights_hash
+        #: the network's arithmetic as run: "fp32", "bf16" or "fp16" (mixed precision)
+        self.precision = self.model.precision
+        self.needs = MethodNeeds(contrast=self.model.needs_contrast or settle_contrast,
+                                 timing=self.model.needs_timing, weights=True)
+        self._edi = EdiMethod(self.n, contrast, hot_pixels)
+
+    @classmethod
+    def from_config(cls, config: MethodConfig) -> TrmdMethod:
+        return cls(config.n, config.weights, config.device, config.threads, config.contrast,
+                   config.hot_pixels, config.precision, settle_contrast=config.settle_contrast)
+
+    def prepare(self, blurry, events, exposure=None) -> Prepared:
+        """c settled as EDI settles it (see :meth:`EdiMethod.prepare`)."""
+        return self._edi.prepare(blurry, events, exposure)
+
+    def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
+        from .voxel import scer_levels, scer_voxels
+
+        b = check_blurry(blurry, events.width, events.height)
+        grid = exposure.instants_us(self.n)
+        inst = grid if instants_us is None else np.asarray(instants_us, np.float64)
+        nearest = np.abs(inst[:, None] - grid[None]).argmin(axis=1)
+        exact = np.isclose(inst, grid[nearest], atol=0.5)
+        # in-between instants are propagated from the nearest frame with c: settle it for them
+        settle = self.needs.contrast or not exact.all()
+        prep = self.prepare(b, events, exposure) if settle else None
+        c = None if prep is None else prep.contrast
+        levels = scer_levels(events, exposure, self.n) if self.needs.timing else None
+        frames = self.model(b, scer_voxels(events, exposure, self.n), c, levels)
+        if prep is None:
+            return Estimate(frames[nearest], inst, None)
+        if exact.all():
+            return Estimate(frames[nearest], inst, c, prep.estimated, prep.reliable,
+                            prep.hot_pixels, prep.note)
+        out = np.empty((len(inst), *frames.shape[1:]), np.float32)
+        for k in np.unique(nearest):
+            sel = nearest == k
+            out[sel] = propagate(frames[k], events, grid[k], inst[sel], c, prep.hot)
+        return Estimate(out, inst, c, prep.estimated, prep.reliable, prep.hot_pixels,
+                        prep.note)
+
+    def from_bins(self, blurry, bins, fractions=None) -> Estimate:
+        """The network on SCER voxels made from the bins; its timing inputs, when it takes
+        them, get the counts (no event times to refine them). M bins other than the network's
+        2N are resampled to 2N (:func:`~trmd_cli.voxel.resample_bins`: whole bins summed when 2N
+        divides M, else straddling bins split evenly); c is settled on the M bins as given."""
+        from .voxel import resample_bins, scer_from_bins
+
+        bins = _check_bins(bins)
+        b = check_blurry(blurry, bins.shape[2], bins.shape[1])
+        grid = _bin_grid(self.n)
+        if fractions is not None and not (len(fractions) == len(grid)
+                                          and np.allclose(fractions, grid)):
+            # without event times there is nothing to propagate in-between frames with
+            raise InputError(f"on binned data TRMD gives its own {len(grid)} frames only",
+                             hint="leave the instants out")
+        prep = self.prepare(b, bins) if self.needs.contrast else None
+        c = None if prep is None else prep.contrast
+        two_n = 2 * self.n
+        counts = np.asarray(bins, np.float32) if bins.shape[0] == two_n else \
+            resample_bins(bins, two_n)
+        frames = self.model(b, scer_from_bins(counts), c)
+        if prep is None:
+            return Estimate(frames, grid, None)
+        return Estimate(frames, grid, c, prep.estimated, prep.reliable,
+                        contrast_note=prep.note)
+
+
+#: every deblurring method's class by name: the one place a method is added. A class has
+#: ``name``, ``needs`` (what is known before it is built), ``summary`` (one line for reports)
+#: and ``from_config(config)``.
+REGISTRY: dict[str, type] = {cls.name: cls for cls in (EdiMethod, TrmdMethod)}
+#: every deblurring method, in the order messages list them
+METHODS = tuple(REGISTRY)
+
+
+def make_method(config: MethodConfig) -> Method:
+    """The method ``config.method`` names (TRMD loads its weights once, here)."""
+    return REGISTRY[config.method].from_config(config)
+
+
+def unavailable(config: MethodConfig) -> str | None:
+    """Why ``config``'s method cannot run in this installation, or None: it needs weights,
+    none are given, and none ship."""
+    if not REGISTRY[config.method].needs.weights or config.weights is not None:
+        return None
+    from .models.weights import default_weights_path
+
+    if default_weights_path().is_file():
+        return None
+    return ("this installation ships no trained weights; pass `weights=PATH` to a .safetensors "
+            "file from `trmd train`")

@@ -1,0 +1,135 @@
+"""The method protocol (trmd_cli.methods): what ``prepare`` settles, declared needs, binned data,
+the build-time setting that makes TRMD settle c, and the registry."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from trmd_cli.edi import EdiBins, edi_from_bins, hot_pixel_mask
+from trmd_cli.errors import InputError
+from trmd_cli.methods import (
+    METHODS,
+    REGISTRY,
+    EdiMethod,
+    MethodConfig,
+    Prepared,
+    TrmdMethod,
+    make_method,
+    unavailable,
+)
+from trmd_cli.simulate import SensorConfig, make_sample
+from trmd_cli.threshold import estimate_contrast, search_contrast
+from trmd_cli.voxel import event_bins, scer_from_bins, scer_voxels
+
+N = 3
+
+
+@pytest.fixture(scope="module")
+def sample():
+    rng = np.random.default_rng(0)
+    image = rng.random((80, 96)).astype(np.float32)
+    return make_sample(image, n=N, size=(64, 48), rng=rng, sensor=SensorConfig.clean(0.3))
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory):
+    """A small network that takes no threshold (``prior`` other than ``edi_c``)."""
+    from trmd_cli.models import create_model
+    from trmd_cli.models.weights import save_weights
+
+    net = create_model("test_trmd", n=N, prior="edi")
+    return save_weights(tmp_path_factory.mktemp("w") / "w.safetensors", net, meta={})
+
+
+def test_prepare_settles_the_threshold_edi_estimates(sample):
+    s = sample
+    prep = EdiMethod(N).prepare(s.blurry, s.events, s.exposure)
+    assert isinstance(prep, Prepared)
+    hot = hot_pixel_mask(s.events, s.exposure)
+    assert prep.contrast == estimate_contrast(s.blurry, s.events, s.exposure, hot_mask=hot)
+    assert prep.estimated and prep.reliable
+    assert np.array_equal(prep.hot, hot) and prep.hot_pixels == int(hot.sum())
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        prep.contrast = 0.1  # type: ignore[misc]
+    given = EdiMethod(N, 0.37).prepare(s.blurry, s.events, s.exposure)
+    assert given.contrast == 0.37 and not given.estimated
+    assert EdiMethod(N, hot_pixels=False).prepare(s.blurry, s.events, s.exposure).hot is None
+
+
+def test_the_frame_is_deblurred_with_the_prepared_threshold(sample):
+    s = sample
+    method = EdiMethod(N)
+    est = method(s.blurry, s.events, s.exposure)
+    prep = method.prepare(s.blurry, s.events, s.exposure)
+    assert est.contrast == prep.contrast and est.contrast_estimated
+    fr = (s.exposure.instants_us(N) - s.exposure.start_us) / s.exposure.duration_us
+    np.testing.assert_array_equal(est.frames, prep.model.latent(s.blurry, fr, prep.contrast))
+
+
+def test_edi_on_bins_is_edi_from_bins_with_the_estimated_threshold(sample):
+    s = sample
+    bins = event_bins(s.events, s.exposure, 2 * N)
+    prep = EdiMethod(N).prepare(s.blurry, bins)
+    assert isinstance(prep.model, EdiBins) and prep.hot is None
+    assert prep.contrast == search_contrast(s.blurry, EdiBins.build(bins)).contrast
+    est = EdiMethod(N).from_bins(s.blurry, bins)
+    fr = np.linspace(0, 1, 2 * N + 1)
+    np.testing.assert_array_equal(est.instants_us, fr)
+    np.testing.assert_array_equal(est.frames, edi_from_bins(s.blurry, bins, fr, prep.contrast))
+    with pytest.raises(InputError, match="exposure window"):
+        EdiMethod(N).prepare(s.blurry, s.events)
+
+
+def test_declared_needs():
+    assert EdiMethod.needs.contrast and not EdiMethod.needs.weights
+    assert TrmdMethod.needs.weights
+    assert METHODS == tuple(REGISTRY) == ("edi", "trmd")
+    assert isinstance(make_method(MethodConfig("edi", n=2, contrast=0.2)), EdiMethod)
+
+
+def test_trmd_settles_c_only_when_built_to(sample, weights):
+    s = sample
+    plain = make_method(MethodConfig("trmd", weights=weights, threads=1))
+    assert not plain.needs.contrast and plain.needs.weights
+    assert plain(s.blurry, s.events, s.exposure).contrast is None
+    settling = make_method(MethodConfig("trmd", weights=weights, threads=1,
+                                        settle_contrast=True))
+    assert settling.needs.contrast
+    est = settling(s.blurry, s.events, s.exposure)
+    edi_c = EdiMethod(N).prepare(s.blurry, s.events, s.exposure).contrast
+    assert est.contrast == edi_c and est.contrast_estimated
+    # the frames themselves do not depend on it: this network takes no threshold
+    np.testing.assert_array_equal(est.frames, plain(s.blurry, s.events, s.exposure).frames)
+    assert settling.prepare(s.blurry, s.events, s.exposure).contrast == edi_c
+
+
+def test_trmd_on_bins_runs_the_network_on_their_voxels(sample, weights):
+    s = sample
+    method = TrmdMethod(N, weights, threads=1)
+    bins = event_bins(s.events, s.exposure, 2 * N)
+    est = method.from_bins(s.blurry, bins)
+    np.testing.assert_array_equal(est.frames, method.model(s.blurry, scer_from_bins(bins)))
+    np.testing.assert_array_equal(scer_from_bins(bins), scer_voxels(s.events, s.exposure, N))
+    with pytest.raises(InputError, match="own 7 frames"):
+        method.from_bins(s.blurry, bins, [0.0, 0.5, 1.0])
+
+
+def test_unavailable_says_why(weights, no_shipped_weights):
+    assert unavailable(MethodConfig("edi")) is None
+    assert unavailable(MethodConfig("trmd", weights=weights)) is None
+    why = unavailable(MethodConfig("trmd"))
+    assert "ships no trained weights" in why and "`weights=PATH`" in why
+
+
+def test_config_errors_name_parameters_not_flags():
+    with pytest.raises(InputError, match="use `method` edi or trmd"):
+        MethodConfig("magic")
+    with pytest.raises(InputError, match="`n=3`"):
+        MethodConfig("edi", n=0)
+    with pytest.raises(InputError, match="`contrast` must be a positive number"):
+        MethodConfig("edi", contrast=-1.0)
+    with pytest.raises(InputError, match="use `precision`"):
+        MethodConfig("edi", precision="fp8")
