@@ -89,11 +89,8 @@ class VideoWriter:
             if self.count == 0:
                 raise InputError("no frames to write", path=self.path)
             if self.kind == "gif":
-                import imageio.v3 as iio
-
                 # GIF timing is in whole centiseconds; Pillow takes milliseconds per frame
-                iio.imwrite(self._tmp, np.stack(self._gif), extension=".gif", plugin="pillow",
-                            duration=max(20, int(round(1000 / self.fps))), loop=0)
+                _write_gif(self._tmp, np.stack(self._gif), max(20, int(round(1000 / self.fps))))
                 self._gif = []
             else:
                 self._writer.close()
@@ -131,6 +128,27 @@ class VideoWriter:
             self.close()
         else:
             self.abort(exc)
+
+
+#: the palette of gray GIFs: every level, so gray frames are stored exactly
+_GRAY_PALETTE = bytes(v for level in range(256) for v in (level, level, level))
+
+
+def _write_gif(path: Path, frames: np.ndarray, duration_ms: int) -> None:
+    """An animated GIF of uint8 frames, looping. Gray frames share one global palette of the
+    256 gray levels: without it Pillow gives every frame after the first a palette of its own,
+    which some readers (imageio with older Pillow: "No packer found from P to L") cannot
+    convert back to gray; with it every frame reads back as gray, exactly."""
+    if frames.ndim == 3:
+        from PIL import Image
+
+        images = [Image.fromarray(f, "L") for f in frames]
+        images[0].save(path, format="GIF", save_all=True, append_images=images[1:],
+                       duration=duration_ms, loop=0, palette=_GRAY_PALETTE, optimize=False)
+        return
+    import imageio.v3 as iio
+
+    iio.imwrite(path, frames, extension=".gif", plugin="pillow", duration=duration_ms, loop=0)
 
 
 def _even(img: np.ndarray) -> np.ndarray:
