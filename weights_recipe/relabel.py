@@ -21,7 +21,6 @@ same labels when it writes weights. ``--valset`` must be the file the weights we
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import struct
@@ -30,19 +29,13 @@ from pathlib import Path
 from typing import Any
 
 
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def label_valset(recipe: dict[str, Any] | None, figures: dict[str, Any] | None,
                  valset: Path) -> None:
     """Replace paths to the validation file in ``recipe`` and ``figures`` (in place) by its name
     and, in ``figures``, its SHA-256. Entries that name no file (a held-out share) stay."""
-    name, digest = valset.name, sha256(valset)
+    from trmd_cli.train.data import file_sha256
+
+    name, digest = valset.name, file_sha256(valset)
 
     def check(recorded: str, where: str) -> None:
         if Path(recorded).name != name:

@@ -100,6 +100,19 @@ class EvalSource:
         self.close()
 
 
+def _checked_truth(truth_of, frame, n: int, path) -> np.ndarray | None:
+    """The ground truth of ``frame`` from ``truth_of(index, name)`` (None: none), checked
+    against N and the frame's size."""
+    truth = truth_of(frame.index, frame.name) if truth_of else None
+    if truth is not None:
+        _check_truth_count(len(truth), n, path)
+        if truth.shape[1:] != frame.image.shape:
+            raise InputError(f"the ground truth of frame {frame.name} has shape "
+                             f"{truth.shape[1:]}, the blurry frame {frame.image.shape}",
+                             path=path, hint="store sharp frames of the frame's size")
+    return truth
+
+
 def _check_truth_count(count: int, n: int, path) -> None:
     if count != 2 * n + 1:
         m = (count - 1) // 2
@@ -136,13 +149,7 @@ class _WindowSource(EvalSource):
         for win in src:
             f = win.frame
             exp = win.exposure
-            truth = self._truth(f.index, f.name) if self._truth else None
-            if truth is not None:
-                _check_truth_count(len(truth), self.n, self.path)
-                if truth.shape[1:] != f.image.shape:
-                    raise InputError(f"the ground truth of frame {f.name} has shape "
-                                     f"{truth.shape[1:]}, the blurry frame {f.image.shape}",
-                                     path=self.path, hint="store sharp frames of the frame's size")
+            truth = _checked_truth(self._truth, f, self.n, self.path)
             c = self._contrast(f.index) if self._contrast else None
             yield EvalFrame(f.index, f.name, f.image, exp.instants_us(self.n), exp, win.events,
                             None, truth, c)
@@ -224,13 +231,7 @@ class _BinnedSource(EvalSource):
         inst = np.linspace(0.0, 1.0, 2 * self.n + 1)
         for win in src:
             f = win.frame
-            truth = self._truth(f.index, f.name) if self._truth else None
-            if truth is not None:
-                _check_truth_count(len(truth), self.n, self.path)
-                if truth.shape[1:] != f.image.shape:
-                    raise InputError(f"the ground truth of frame {f.name} has shape "
-                                     f"{truth.shape[1:]}, the blurry frame {f.image.shape}",
-                                     path=self.path, hint="store sharp frames of the frame's size")
+            truth = _checked_truth(self._truth, f, self.n, self.path)
             yield EvalFrame(f.index, f.name, f.image, inst, bins=win.bins, truth=truth)
 
 
