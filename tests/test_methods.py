@@ -86,7 +86,7 @@ def test_edi_on_bins_is_edi_from_bins_with_the_estimated_threshold(sample):
 def test_declared_needs():
     assert EdiMethod.needs.contrast and not EdiMethod.needs.weights
     assert TrmdMethod.needs.weights
-    assert METHODS == tuple(REGISTRY) == ("edi", "trmd")
+    assert METHODS == tuple(REGISTRY) == ("edi", "trmd", "motion")
     assert isinstance(make_method(MethodConfig("edi", n=2, contrast=0.2)), EdiMethod)
 
 

@@ -112,7 +112,8 @@ def deblur_frames(source: Iterable[FrameWindow | BinnedWindow], method: Method, 
                                "unchanged",))
             continue
         est = method(blurry, events, exposure, inst)
-        yield FrameResult(frame.index, frame.name, blurry, exposure, est, len(inside), False)
+        yield FrameResult(frame.index, frame.name, blurry, exposure, est, len(inside), False,
+                          tuple(f"frame {frame.name}: {note}" for note in est.notes))
 
 
 def _from_bins(item: BinnedWindow, method: Method, per_exposure: int | None) -> FrameResult:

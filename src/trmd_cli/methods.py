@@ -43,6 +43,7 @@ __all__ = [
     "Method",
     "EdiMethod",
     "TrmdMethod",
+    "MotionMethod",
     "REGISTRY",
     "make_method",
     "unavailable",
@@ -154,6 +155,7 @@ class Estimate:
         contrast_reliable: False when too few events to estimate (a default was used).
         hot_pixels: number of pixels whose events were ignored.
         contrast_note: see :attr:`Prepared.note`.
+        notes: other messages for the user (e.g. a method's fallback to EDI).
     """
 
     frames: np.ndarray
@@ -163,6 +165,7 @@ class Estimate:
     contrast_reliable: bool = True
     hot_pixels: int = 0
     contrast_note: str | None = None
+    notes: tuple[str, ...] = ()
 
 
 class Method(Protocol):
@@ -367,10 +370,56 @@ class TrmdMethod:
                         contrast_note=prep.note)
 
 
+class MotionMethod:
+    """Non-blind deconvolution of the blurry frame along the global motion the events show
+    (contrast maximisation, :mod:`trmd_cli.motion`; solver and guard, :mod:`trmd_cli.deconv`),
+    blended per tile with EDI where the motion does not explain the blur. The 2N+1 frames (and
+    any other instants) are the recovered middle frame warped along the motion. c is settled as
+    EDI settles it, for the fallback."""
+
+    name = "motion"
+    needs = MethodNeeds(contrast=True)
+    weights_hash = None
+    precision = None
+    summary = ("deconvolution along the events' global motion (contrast maximisation), "
+               "guarded by EDI; contrast estimated per frame as EDI's")
+
+    def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
+                 hot_pixels: bool = True) -> None:
+        self.n = n
+        self._edi = EdiMethod(n, contrast, hot_pixels)
+
+    @classmethod
+    def from_config(cls, config: MethodConfig) -> MotionMethod:
+        return cls(config.n or DEFAULT_N, config.contrast, config.hot_pixels)
+
+    def prepare(self, blurry, events, exposure=None) -> Prepared:
+        """c settled as EDI settles it (see :meth:`EdiMethod.prepare`)."""
+        return self._edi.prepare(blurry, events, exposure)
+
+    def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
+        from .deconv import motion_deblur
+
+        b = check_blurry(blurry, events.width, events.height)
+        inst = exposure.instants_us(self.n) if instants_us is None else \
+            np.asarray(instants_us, np.float64)
+        prep = self.prepare(b, events, exposure)
+        fr = (inst - exposure.start_us) / exposure.duration_us
+        edi = prep.model.latent(b, fr, prep.contrast)
+        mid = prep.model.latent(b, np.array([0.5]), prep.contrast)[0]
+        res = motion_deblur(b, events, exposure, fr, edi, mid, prep.hot)
+        return Estimate(res.frames, inst, prep.contrast, prep.estimated, prep.reliable,
+                        prep.hot_pixels, prep.note, res.notes)
+
+    def from_bins(self, blurry, bins, fractions=None) -> Estimate:
+        raise InputError("`method='motion'` needs event times to estimate the motion; binned "
+                         "events have none", hint="use `method='edi'` or `method='trmd'`")
+
+
 #: every deblurring method's class by name: the one place a method is added. A class has
 #: ``name``, ``needs`` (what is known before it is built), ``summary`` (one line for reports)
 #: and ``from_config(config)``.
-REGISTRY: dict[str, type] = {cls.name: cls for cls in (EdiMethod, TrmdMethod)}
+REGISTRY: dict[str, type] = {cls.name: cls for cls in (EdiMethod, TrmdMethod, MotionMethod)}
 #: every deblurring method, in the order messages list them
 METHODS = tuple(REGISTRY)
 

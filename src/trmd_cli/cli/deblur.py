@@ -39,7 +39,8 @@ from .options import (
 _DEFAULT_METHOD_HELP = "trmd"
 
 Method = Annotated[str | None, typer.Option(
-    "--method", help="edi (model-based, no weights) or trmd (learned residuals). "
+    "--method", help="edi (model-based, no weights), trmd (learned residuals) or motion "
+    "(deconvolution along the events' global motion, guarded by EDI). "
     f"Default: {_DEFAULT_METHOD_HELP}.")]
 NOpt = Annotated[int | None, typer.Option(
     "--n", min=1, max=16, help="Latent frames 2N+1 per exposure (default 3 → 7 frames; TRMD: "
