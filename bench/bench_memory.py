@@ -18,6 +18,15 @@ was spawned from (this process, which has just written the recording) across ``e
 would report the parent's peak. ``VmRSS`` of the child is also sampled while it runs, to show
 memory over time.
 
+``--readers`` measures the readers instead: one recording of ``--events`` events as an
+uncompressed ``.npz`` and as an HDF5 file, and one of ``--text-events`` as text (the same
+240×180 sensor and event rate), each given to ``trmd info``, ``trmd voxelize`` on one 10 ms
+window, ``trmd deblur BLURRY.png EVENTS`` on that window, and ``trmd voxelize`` with no window
+(the whole span). ``--trmd-src DIR`` runs another copy of trmd's sources (e.g. the previous
+version, unpacked with ``git archive``) for a before/after comparison::
+
+    python bench/bench_memory.py --readers --events 50e6 --text-events 20e6
+
 The claim (issue: bounded memory): the peak does not grow with the file. Expect the same figure,
 within a few MiB, for every size past a warm-up: HDF5's chunk caches and free lists take a fixed
 ~30 MiB over the first ~200 windows, then stay put (so ``--quick``, whose recordings are shorter
@@ -105,6 +114,94 @@ runpy.run_module("trmd_cli", run_name="__main__")
 """
 
 
+def run_trmd(args: list[str], hwm: Path, src: Path | None = None) -> tuple[float, float]:
+    """``trmd ARGS`` in a child: (peak RSS MiB, wall s). ``src``: the trmd sources to run."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
+    env["TRMD_BENCH_HWM"] = str(hwm)
+    if src is not None:
+        env["PYTHONPATH"] = str(src)
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", CHILD, *args], capture_output=True, text=True,
+                          env=env)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"trmd {' '.join(args)} failed (exit {proc.returncode}): "
+                         f"{proc.stderr.strip()}")
+    peak = int(hwm.read_text()) / 1024
+    hwm.unlink()
+    return peak, wall
+
+
+def write_flat_recording(work: Path, events: int, seed: int = 0):
+    """``events`` events at 2 M/s on 240×180 (40 000 per 20 ms): the same stream as .npz
+    (uncompressed) and .h5, written a piece at a time."""
+    from trmd_cli.events import make_stream
+    from trmd_cli.write import H5Writer, write_events_npz
+
+    rng = np.random.default_rng(seed)
+    rate = 2  # events per µs
+    t = np.sort(rng.integers(0, events // rate, events)).astype(np.int64)
+    x = rng.integers(0, W, events, dtype=np.uint16)
+    y = rng.integers(0, H, events, dtype=np.uint16)
+    p = rng.integers(0, 2, events).astype(np.int8) * 2 - 1
+    write_events_npz(work / "rec.npz", make_stream(x, y, t, p, W, H))
+    with H5Writer(work / "rec.h5", W, H) as w:
+        step = 1 << 24
+        for i in range(0, events, step):
+            w.add_events(make_stream(x[i:i + step], y[i:i + step], t[i:i + step],
+                                     p[i:i + step], W, H))
+    return int(t[-1])
+
+
+def write_text_recording(path: Path, events: int, seed: int = 1) -> int:
+    """``events`` text events (t in seconds, 2 M/s) written a million lines at a time."""
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.integers(0, events // 2, events)).astype(np.int64)
+    with open(path, "w") as fh:
+        fh.write(f"{W} {H}\n")
+        for i in range(0, events, 1 << 20):
+            s, us = np.divmod(t[i:i + (1 << 20)], 1_000_000)
+            n = len(s)
+            cols = np.stack([s, us, rng.integers(0, W, n), rng.integers(0, H, n),
+                             rng.integers(0, 2, n)], 1).tolist()
+            fh.write("".join(f"{a}.{b:06d} {c} {d} {e}\n" for a, b, c, d, e in cols))
+    return int(t[-1])
+
+
+def bench_readers(args, work: Path) -> None:
+    from trmd_cli.write import write_image
+
+    print(f"readers: {args.events:.0f} events (.npz, .h5), {args.text_events:.0f} (text); "
+          f"sources: {args.trmd_src or 'this checkout'}")
+    write_image(work / "blurry.png", np.full((H, W), 0.5, np.float32))
+    t0 = time.perf_counter()
+    end = write_flat_recording(work, int(args.events))
+    text_end = write_text_recording(work / "rec.txt", int(args.text_events)) \
+        if args.text_events else None
+    print(f"written in {time.perf_counter() - t0:.0f} s")
+    print(f"{'file':>8} {'command':<28} {'peak RSS MiB':>13} {'wall s':>8}")
+    hwm = work / "hwm"
+    for name, last in (("rec.npz", end), ("rec.h5", end), ("rec.txt", text_end)):
+        if last is None:
+            continue
+        f = str(work / name)
+        mid = last // 2
+        win = ["--exposure", str(mid), str(mid + 10_000)]
+        if name.endswith(".txt"):  # text times are seconds: the window in the file's unit
+            win = ["--exposure", f"{mid / 1e6:.6f}", f"{(mid + 10_000) / 1e6:.6f}"]
+        runs = [("info", ["info", f]),
+                ("voxelize (one window)", ["voxelize", f, "-o", str(work / "v.npz"), *win,
+                                           "--overwrite"]),
+                ("deblur (one window)", ["deblur", str(work / "blurry.png"), f, "-o",
+                                         str(work / "d"), *win, "--method", "edi",
+                                         "--contrast", "0.2", "--overwrite"]),
+                ("voxelize (whole span)", ["voxelize", f, "-o", str(work / "v.npz"), "--n",
+                                           "1", "--overwrite"])]
+        for what, cmd in runs:
+            peak, wall = run_trmd(cmd, hwm, args.trmd_src)
+            print(f"{name:>8} {what:<28} {peak:13.0f} {wall:8.1f}", flush=True)
+
+
 def run_deblur(rec: Path, out: Path, contrast: str) -> dict:
     """Run the CLI in a child; its peak RSS (MiB), RSS samples over time, wall time."""
     hwm = out.with_name(out.name + ".hwm")
@@ -153,6 +250,13 @@ def main() -> None:
     ap.add_argument("--dir", type=Path, default=None,
                     help="where to put the temporary folder (default: $TMPDIR or /tmp)")
     ap.add_argument("--keep", action="store_true", help="keep the recordings and outputs")
+    ap.add_argument("--readers", action="store_true",
+                    help="measure info / voxelize / deblur on .npz, .h5 and text instead")
+    ap.add_argument("--events", type=float, default=50e6, help="--readers: .npz/.h5 events")
+    ap.add_argument("--text-events", type=float, default=20e6,
+                    help="--readers: text events (0: no text file)")
+    ap.add_argument("--trmd-src", type=Path, default=None,
+                    help="--readers: run the trmd found here (a src/ folder) instead")
     args = ap.parse_args()
     if args.quick:
         args.size_gb, args.steps = 0.05, 3
@@ -165,6 +269,13 @@ def main() -> None:
         raise SystemExit(f"refusing to write recordings inside the repository ({work})")
 
     print(machine())
+    if args.readers:
+        try:
+            bench_readers(args, work)
+        finally:
+            if not args.keep:
+                shutil.rmtree(work, ignore_errors=True)
+        return
     print(f"trmd deblur REC.h5 -o OUT --method edi --contrast {args.contrast}; frames {W}x{H} "
           f"float32, {args.events_per_frame} events per {INTERVAL_US // 1000} ms; in {work}")
     per_frame = bytes_per_frame(args.events_per_frame)

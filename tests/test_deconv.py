@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
+from trmd_cli.deconv import BlurOperator, DeconvConfig, deconvolve, noise_level
 from trmd_cli.errors import InputError
 from trmd_cli.events import EventStream, Exposure
 from trmd_cli.methods import EdiMethod, MotionMethod
 from trmd_cli.metrics import psnr
 from trmd_cli.motion import GlobalMotion
-from trmd_cli.deconv import BlurOperator, DeconvConfig, deconvolve, noise_level
 from trmd_cli.simulate import MotionRanges, SensorConfig, make_sample
 
 from .helpers.data import texture

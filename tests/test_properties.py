@@ -170,9 +170,14 @@ MAGIC = {
     "evt3": b"% evt 3.0\n% format EVT3;height=48;width=64\n% end\n",
     "dat": b"% Width 64\n% Height 48\n\x0c\x08",
     "mat": b"MATLAB 5.0 MAT-file, Platform: posix".ljust(116) + bytes(8) + b"\x00\x01IM",
+    "aedat2": b"#!AER-DAT2.0\r\n# AEChip: eu.seebetter.ini.chips.davis.DAVIS240C\r\n"
+              b"#End Of ASCII Header\r\n",
+    "aedat3": b"#!AER-DAT3.1\r\n#Format: RAW\r\n#Source 1: DAVIS240C\r\n#!END-HEADER\r\n",
+    "rosbag1": b"#ROSBAG V2.0\n",
     "none": b"",
 }
-EXTENSIONS = [".txt", ".npy", ".npz", ".h5", ".aedat4", ".raw", ".dat", ".mat", ".bin"]
+EXTENSIONS = [".txt", ".npy", ".npz", ".h5", ".aedat4", ".raw", ".dat", ".mat", ".bin",
+              ".aedat", ".bag"]
 
 
 def read_everything(path: Path) -> None:

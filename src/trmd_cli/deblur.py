@@ -100,6 +100,7 @@ def deblur_frames(source: Iterable[FrameWindow | BinnedWindow], method: Method, 
         frame, events = item.frame, item.events
         exposure = frame.exposure
         blurry = check_blurry(frame.image, events.width, events.height, frame.name)
+        blurry, notes = _in_range(blurry, frame)
         inst = exposure.instants_us(method.n) if per_exposure is None else \
             exposure_instants(exposure, per_exposure)
         inside = events.slice(exposure.start_us, exposure.end_us + 1)
@@ -107,13 +108,25 @@ def deblur_frames(source: Iterable[FrameWindow | BinnedWindow], method: Method, 
             frames = np.repeat(blurry[None], len(inst), axis=0)
             yield FrameResult(frame.index, frame.name, blurry, exposure,
                               Estimate(frames, inst, None), 0, True,
-                              (f"frame {frame.name}: no events in its exposure window "
+                              (*notes, f"frame {frame.name}: no events in its exposure window "
                                f"[{exposure.start_us}, {exposure.end_us}] µs; passed through "
-                               "unchanged",))
+                               "unchanged"))
             continue
         est = method(blurry, events, exposure, inst)
         yield FrameResult(frame.index, frame.name, blurry, exposure, est, len(inside), False,
-                          tuple(f"frame {frame.name}: {note}" for note in est.notes))
+                          (*notes, *(f"frame {frame.name}: {note}" for note in est.notes)))
+
+
+def _in_range(blurry: np.ndarray, frame) -> tuple[np.ndarray, tuple[str, ...]]:
+    """The frame with values outside [0, 1] clipped, and what was said about it: a frame of
+    −1e30 (or of 0–255 stored as floats read as they are) must not deblur without a word."""
+    from .read.frames import clip_note
+
+    notes = () if getattr(frame, "note", None) is None else (frame.note,)
+    note = clip_note(blurry, frame.name)
+    if note is None:
+        return blurry, notes
+    return np.clip(blurry, 0.0, 1.0), (*notes, note)
 
 
 def _from_bins(item: BinnedWindow, method: Method, per_exposure: int | None) -> FrameResult:
@@ -126,6 +139,7 @@ def _from_bins(item: BinnedWindow, method: Method, per_exposure: int | None) -> 
                          hint=f"leave out `per_exposure`: binned events give the 2N+1 = {k} "
                               "frames at the instants k/2N")
     blurry = check_blurry(frame.image, bins.shape[2], bins.shape[1], frame.name)
+    blurry, notes = _in_range(blurry, frame)
     count = int(np.abs(bins.astype(np.int64, copy=False)).sum()) if bins.dtype.kind in "iu" \
         else int(np.abs(bins).sum())
     if count == 0:
@@ -133,10 +147,10 @@ def _from_bins(item: BinnedWindow, method: Method, per_exposure: int | None) -> 
         frames = np.repeat(blurry[None], k, axis=0)
         return FrameResult(frame.index, frame.name, blurry, None,
                            Estimate(frames, fractions, None), 0, True,
-                           (f"frame {frame.name}: its bins hold no events; passed through "
-                            "unchanged",))
+                           (*notes, f"frame {frame.name}: its bins hold no events; passed "
+                            "through unchanged"))
     est = method.from_bins(blurry, bins)
-    return FrameResult(frame.index, frame.name, blurry, None, est, count, False)
+    return FrameResult(frame.index, frame.name, blurry, None, est, count, False, notes)
 
 
 def binned_note(source: BinnedSource, method: Method, *, stream: bool = False) -> str:

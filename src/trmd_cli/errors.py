@@ -17,6 +17,7 @@ __all__ = [
     "ShapeError",
     "WeightsError",
     "OutputExistsError",
+    "WriteError",
     "check_shape",
 ]
 
@@ -54,6 +55,12 @@ class WeightsError(TrmdError):
 
 class OutputExistsError(TrmdError):
     """The output path exists and is not empty; pass ``overwrite=True`` to replace it."""
+
+
+class WriteError(TrmdError):
+    """An output cannot be written where it was asked for: the disk is full, a quota or a file
+    size limit is reached, the folder is read-only or not the user's. Nothing of the output is
+    left behind (a previous output is untouched)."""
 
 
 def check_shape(array, expected: Sequence[int | str | None], name: str = "array") -> None:

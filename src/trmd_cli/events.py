@@ -140,12 +140,14 @@ def make_stream(
     *,
     source: str | None = None,
     sort: bool = False,
+    first: int = 0,
 ) -> EventStream:
     """Validate raw columns and build an :class:`EventStream` (never mutates the inputs).
 
     ``t_us`` must already be in microseconds (float is rounded). ``p`` may be {0,1}, {-1,1} or
     bool; 0 means OFF. When ``width``/``height`` are None they are taken as max+1 (the caller
-    warns). Unsorted times raise unless ``sort`` is true.
+    warns). Unsorted times raise unless ``sort`` is true. ``first``: the file's index of the
+    first of these events (messages name events by their place in the file).
 
     Raises:
         InputError: NaN/infinite/negative times, unsorted times, coordinates outside the sensor,
@@ -158,7 +160,7 @@ def make_stream(
     if t.dtype.kind == "f":
         if len(t) and not np.isfinite(t).all():
             bad = int(np.flatnonzero(~np.isfinite(t))[0])
-            raise InputError(f"event {bad} has a non-finite time ({t[bad]})", path=source,
+            raise InputError(f"event {first + bad} has a non-finite time ({t[bad]})", path=source,
                              hint="remove or repair the broken rows")
         if len(t) and np.abs(t).max() >= _T_LIMIT_US:
             raise InputError(f"event times up to {np.abs(t).max():g} µs are out of range",
@@ -171,12 +173,13 @@ def make_stream(
                          hint="store times as integer microseconds or float seconds")
     if len(t) and t.min() < 0:
         bad = int(np.argmin(t))
-        raise InputError(f"event {bad} has a negative time ({t[bad]} µs)", path=source,
+        raise InputError(f"event {first + bad} has a negative time ({t[bad]} µs)", path=source,
                          hint="times must count from the start of the recording; check `time_unit`")
     if len(t) > 1 and (np.diff(t) < 0).any():
         if not sort:
             bad = int(np.flatnonzero(np.diff(t) < 0)[0]) + 1
-            raise InputError(f"event times are not sorted (event {bad} goes back in time)",
+            raise InputError(f"event times are not sorted (event {first + bad} goes back in "
+                             "time)",
                              path=source, hint="sort the events by time first")
         order = np.argsort(t, kind="stable")
         t, x, y, p = t[order], x[order], y[order], p[order]

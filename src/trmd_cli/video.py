@@ -7,12 +7,20 @@ succeeds (written under a temporary name beside the target, then renamed — see
 
 from __future__ import annotations
 
+import errno
+import io
+import os
+import re
+import struct
+import subprocess
+import tempfile
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .write import atomic_path, to_uint
+from .errors import InputError, WriteError
+from .write import atomic_path, open_output, to_uint, write_failure
 
 __all__ = ["VideoWriter", "VIDEO_SUFFIXES", "check_video_path"]
 
@@ -55,8 +63,7 @@ class VideoWriter:
         self._ctx = atomic_path(self.path)
         self._tmp = self._ctx.__enter__()
         self._gif: list[np.ndarray] = []
-        self._plugin = None
-        self._writer = None
+        self._encoder: _Encoder | None = None
 
     def append(self, frame: np.ndarray) -> None:
         img = to_uint(np.asarray(frame, np.float32), 8)
@@ -70,50 +77,54 @@ class VideoWriter:
         if self.kind == "gif":
             self._gif.append(img)
         else:
-            self._mp4_writer().append_data(_even(img))
+            try:
+                if self._encoder is None:
+                    self._encoder = _Encoder(self._tmp, _even(img).shape, self.fps,
+                                             self.quality)
+                self._encoder.write(_even(img))
+            except BaseException as e:
+                raise self._failed(e) from None
         self.count += 1
 
-    def _mp4_writer(self):
-        if self._writer is None:
-            import imageio.v3 as iio
-
-            self._plugin = iio.imopen(self._tmp, "w", plugin="FFMPEG", extension=".mp4")
-            self._writer = self._plugin.legacy_get_writer(
-                fps=self.fps, codec="libx264", quality=self.quality, macro_block_size=1,
-                ffmpeg_log_level="error", pixelformat="yuv420p")
-        return self._writer
-
     def close(self) -> Path:
-        """Finish the file and move it into place. Raises InputError for an empty video."""
+        """Finish the file, check that it is whole, and move it into place.
+
+        Raises:
+            InputError: no frames. WriteError: the disk is full, the folder is read-only, or
+            the encoder did not finish the file (the video is then not there: a player could
+            not open it).
+        """
         try:
             if self.count == 0:
                 raise InputError("no frames to write", path=self.path)
             if self.kind == "gif":
                 # GIF timing is in whole centiseconds; Pillow takes milliseconds per frame
-                _write_gif(self._tmp, np.stack(self._gif), max(20, int(round(1000 / self.fps))))
+                buffer = io.BytesIO()
+                _write_gif(buffer, np.stack(self._gif), max(20, int(round(1000 / self.fps))))
                 self._gif = []
+                with open_output(self._tmp) as fh:
+                    fh.write(buffer.getbuffer())
             else:
-                self._writer.close()
-                self._plugin.close()
-                self._writer = self._plugin = None
+                encoder, self._encoder = self._encoder, None
+                encoder.finish(self.path)
             if self._tmp.stat().st_size == 0:
-                raise InputError("the video encoder wrote nothing", path=self.path,
+                raise WriteError("the video encoder wrote nothing", path=self.path,
                                  hint="check that imageio-ffmpeg is installed")
         except BaseException as e:
-            self.abort(e)
-            raise
+            raise self._failed(e) from None
         self._ctx.__exit__(None, None, None)
         return self.path
 
+    def _failed(self, e: BaseException) -> BaseException:
+        """Abort, and say ``e`` as one line when it is a failure to write."""
+        self.abort(e)
+        return write_failure(e, self.path.parent, self._tmp) or e
+
     def abort(self, exc: BaseException | None = None) -> None:
-        """Drop the temporary file; the target is left untouched."""
-        try:
-            if self._writer is not None:
-                self._writer.close()
-                self._plugin.close()
-        except Exception:  # noqa: BLE001 - already failing; the temp file is removed below
-            pass
-        self._writer = self._plugin = None
+        """Drop the temporary file (stopping the encoder); the target is left untouched."""
+        if self._encoder is not None:
+            self._encoder.kill()
+            self._encoder = None
         exc = exc or RuntimeError("aborted")
         try:
             self._ctx.__exit__(type(exc), exc, None)
@@ -149,6 +160,122 @@ def _write_gif(path: Path, frames: np.ndarray, duration_ms: int) -> None:
     import imageio.v3 as iio
 
     iio.imwrite(path, frames, extension=".gif", plugin="pillow", duration=duration_ms, loop=0)
+
+
+class _Encoder:
+    """FFmpeg (the one imageio-ffmpeg ships) turning raw frames from a pipe into H.264 in an MP4,
+    with the settings imageio's FFmpeg writer used: libx264, yuv420p, constant quality.
+
+    Its messages go to a temporary file, not the terminal: they become the one error line when
+    encoding fails. It runs in a process group of its own (Ctrl-C at the terminal reaches only
+    trmd, which then stops it: :meth:`kill`).
+    """
+
+    def __init__(self, path: Path, shape: tuple[int, ...], fps: float, quality: int) -> None:
+        import imageio_ffmpeg
+
+        h, w = shape[:2]
+        crf = int((1 - quality / 10.0) * 51)
+        self.cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-f", "rawvideo", "-vcodec",
+                    "rawvideo", "-s", f"{w}x{h}", "-pix_fmt", "gray" if len(shape) == 2 else
+                    "rgb24", "-r", str(Fraction(fps).limit_denominator()), "-i", "-", "-an",
+                    "-vcodec", "libx264", "-pix_fmt", "yuv420p", "-crf", str(crf), "-v",
+                    "error", str(path)]
+        self._log = tempfile.TemporaryFile()
+        try:
+            self._proc = subprocess.Popen(self.cmd, stdin=subprocess.PIPE,
+                                          stdout=subprocess.DEVNULL, stderr=self._log,
+                                          start_new_session=True)
+        except BaseException:
+            self._log.close()
+            raise
+
+    def write(self, frame: np.ndarray) -> None:
+        try:
+            self._proc.stdin.write(np.ascontiguousarray(frame).data)
+        except BrokenPipeError:  # FFmpeg stopped: say why
+            self._fail(None)
+
+    def finish(self, target: Path) -> None:
+        """Close the pipe, wait for FFmpeg, and check the file it wrote is a whole MP4."""
+        try:
+            self._proc.stdin.close()
+        except BrokenPipeError:
+            pass
+        code = self._proc.wait()
+        if code != 0:
+            self._fail(code)
+        problem = mp4_problem(Path(self.cmd[-1]))
+        if problem is not None:
+            self._fail(code, problem)
+        self._log.close()
+
+    def _fail(self, code: int | None, problem: str | None = None) -> None:
+        self._log.seek(0)
+        lines = [ln.strip() for ln in self._log.read().decode("utf-8", "replace").splitlines()
+                 if ln.strip()]
+        self.kill()
+        said = re.sub(r"^\[[^\]]*\]\s*", "", lines[-1]) if lines else ""
+        for err in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES):
+            if os.strerror(err) in said:
+                raise OSError(err, os.strerror(err))
+        if not said and self._disk_full():
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        what = problem or (f"FFmpeg stopped with exit code {code}" if code else "FFmpeg stopped")
+        raise WriteError(f"the video encoder did not finish the file: {what}"
+                         + (f" ({said})" if said else ""), path=Path(self.cmd[-1]).parent,
+                         hint="nothing was written; check the free space and run again")
+
+    def _disk_full(self) -> bool:
+        try:
+            st = os.statvfs(Path(self.cmd[-1]).parent)
+        except OSError:
+            return False
+        return st.f_bavail * st.f_frsize < (1 << 20)
+
+    def kill(self) -> None:
+        """Stop FFmpeg now (an aborted video): it must not outlive the run."""
+        if self._proc.poll() is None:
+            self._proc.kill()
+        try:
+            self._proc.stdin.close()
+        except (OSError, ValueError):
+            pass
+        self._proc.wait()
+        if not self._log.closed:
+            self._log.close()
+
+
+def mp4_problem(path: str | Path) -> str | None:
+    """What keeps ``path`` from being a whole MP4, or None: its top-level boxes must tile the
+    file exactly and include ``moov`` (the index, written last: a file cut short lacks it) and
+    ``mdat`` (the frames)."""
+    size = os.path.getsize(path)
+    seen: set[bytes] = set()
+    pos = 0
+    with open(path, "rb") as fh:
+        while pos < size:
+            fh.seek(pos)
+            head = fh.read(16)
+            if len(head) < 8:
+                return f"it ends inside a box header at byte {pos}"
+            length, kind = struct.unpack(">I4s", head[:8])
+            if length == 1:
+                if len(head) < 16:
+                    return f"it ends inside a box header at byte {pos}"
+                (length,) = struct.unpack(">Q", head[8:16])
+            elif length == 0:
+                length = size - pos
+            if length < 8 or pos + length > size:
+                return (f"its {kind.decode('latin-1')!r} box at byte {pos} runs past the end "
+                        f"of the {size}-byte file")
+            seen.add(kind)
+            pos += length
+    if b"moov" not in seen:
+        return "it has no 'moov' box (the index FFmpeg writes last)"
+    if b"mdat" not in seen:
+        return "it has no 'mdat' box (the frames)"
+    return None
 
 
 def _even(img: np.ndarray) -> np.ndarray:

@@ -10,18 +10,20 @@ sweeps the temporaries of *its* output left by processes that no longer run.
 from __future__ import annotations
 
 import contextlib
+import errno
+import io
 import json
 import os
 import re
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import InputError, OutputExistsError
+from .errors import InputError, OutputExistsError, TrmdError, WriteError
 
 if TYPE_CHECKING:
     from .deblur import FrameResult
@@ -30,6 +32,9 @@ __all__ = [
     "atomic_path",
     "atomic_dir",
     "check_output",
+    "open_output",
+    "write_bytes",
+    "write_failure",
     "sweep_stale_temps",
     "to_uint",
     "write_image",
@@ -51,24 +56,62 @@ def _umask() -> int:
 _UMASK = _umask()
 
 
-def check_output(path: str | Path, overwrite: bool) -> Path:
-    """Refuse an output that exists and is not an empty folder, unless ``overwrite``.
+def check_output(path: str | Path, overwrite: bool,
+                 inputs: Iterable[str | Path | None] = ()) -> Path:
+    """Refuse an output that exists and is not an empty folder, unless ``overwrite``; refuse,
+    whatever ``overwrite`` says, an output that is one of ``inputs`` or a folder holding one
+    (writing it would destroy what is being read).
 
     Also removes what killed runs left while writing this same output (see
-    :func:`sweep_stale_temps`).
+    :func:`sweep_stale_temps`). Nothing is touched before the checks that refuse.
     """
     path = Path(path)
-    if path.parent.exists():
+    refuse_inputs(path, inputs)
+    parent = path.parent
+    if parent.exists() and not parent.is_dir():
+        raise InputError("the output's parent is a file, not a folder", path=parent,
+                         hint="choose an output inside a folder")
+    if parent.is_dir():
         sweep_stale_temps(path)
     if path.exists() and not overwrite:
         if not (path.is_dir() and not any(path.iterdir())):
             raise OutputExistsError("output already exists", path=path,
                                     hint="pass `overwrite=True` to replace it, or choose another "
                                     "path")
-    if not path.parent.exists():
-        raise InputError("the output's parent folder does not exist", path=path.parent,
+    if not parent.exists():
+        raise InputError("the output's parent folder does not exist", path=parent,
                          hint="create it first")
     return path
+
+
+def refuse_inputs(path: str | Path, inputs: Iterable[str | Path | None]) -> None:
+    """Raise :class:`InputError` when the output ``path`` is one of ``inputs`` (the same file,
+    through any link) or a folder that holds one.
+
+    ``overwrite`` never lets an output replace what the command reads: ``trmd voxelize ev.npz
+    -o ev.npz`` would replace the events with the voxels, ``trmd deblur b.png d/ev.npz -o d``
+    would delete the events with the old folder.
+    """
+    out = Path(os.path.abspath(path))
+    out_real = Path(os.path.realpath(out))
+    for given in inputs:
+        if given is None:
+            continue
+        src = Path(os.path.abspath(given))
+        src_real = Path(os.path.realpath(src))
+        same = src_real == out_real or src == out
+        if not same and out.exists() and src.exists():
+            with contextlib.suppress(OSError):
+                same = os.path.samefile(out, src)
+        if same:
+            raise InputError(f"the output is the input {given}", path=path,
+                             hint="write the output somewhere else (`overwrite=True` never "
+                                  "replaces an input)")
+        if out_real in src_real.parents or out in src.parents:
+            raise InputError(f"the output folder holds the input {given}, which replacing the "
+                             "folder would delete", path=path,
+                             hint="write the output somewhere else (`overwrite=True` never "
+                                  "replaces an input)")
 
 
 def _temp_prefix(path: Path) -> str:
@@ -125,6 +168,48 @@ def _glob_escape(name: str) -> str:
     return re.sub(r"([*?\[])", r"[\1]", name)
 
 
+#: what a failed write says when the disk (or a quota, or a file size limit) is full, and when
+#: the folder may not be written: read-only mount, no permission
+_NO_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+_NOT_ALLOWED = frozenset({errno.EROFS, errno.EACCES, errno.EPERM})
+_H5_ERRNO = re.compile(r"errno = (\d+)")
+
+
+def _errno(e: BaseException) -> int | None:
+    """The errno of an OSError, also when a library only quotes it in its message (HDF5:
+    ``file write failed: … errno = 28``)."""
+    if isinstance(e, OSError) and e.errno:
+        return e.errno
+    m = _H5_ERRNO.search(str(e)) if isinstance(e, (OSError, RuntimeError)) else None
+    return int(m[1]) if m else None
+
+
+def write_failure(e: BaseException, folder: str | Path,
+                  written: str | Path | None = None) -> WriteError | None:
+    """The one-line error for ``e`` met while writing an output into ``folder``, or None when
+    ``e`` is not a failure to write there.
+
+    A full disk, a quota, a file size limit, a read-only mount: always about the writing.
+    No permission: only when ``e`` names no file, or ``written`` (the temporary being written)
+    or a file inside it — a permission error about an input is the input's.
+    """
+    code = _errno(e)
+    if code in _NOT_ALLOWED and code != errno.EROFS:
+        name = getattr(e, "filename", None)
+        if name is not None and written is not None:
+            name, written = Path(os.path.abspath(name)), Path(os.path.abspath(written))
+            if name != written and written not in name.parents:
+                return None
+    if code in _NO_SPACE:
+        hint = "free some space there, or write the output to another disk"
+    elif code in _NOT_ALLOWED:
+        hint = "choose a folder you can write to"
+    else:
+        return None
+    return WriteError(f"cannot write here ({os.strerror(code)})", path=folder,
+                      hint=f"{hint}; nothing was written")
+
+
 def _refuse_folder(path: Path) -> None:
     if path.is_dir():
         raise InputError("is a folder, but a file is to be written here", path=path,
@@ -147,19 +232,34 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
             try:
                 fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=f".tmp{suffix}",
                                            dir=path.parent)
-            except (PermissionError, FileNotFoundError) as e:
-                raise InputError(f"cannot write here ({e.strerror})", path=path.parent,
-                                 hint="choose a folder you can write to") from None
+            except OSError as e:
+                raise _cannot_create(e, path) from None
             tmp_path = Path(tmp)
             os.close(fd)
             os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs look ordinary
         yield tmp_path
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as e:
         if tmp_path is not None:
-            with contextlib.suppress(FileNotFoundError):
+            with contextlib.suppress(OSError):
                 tmp_path.unlink()
+        failure = write_failure(e, path.parent, tmp_path) if isinstance(
+            e, (OSError, RuntimeError)) else None
+        if failure is not None:
+            raise failure from None
         raise
+
+
+def _cannot_create(e: OSError, path: Path) -> TrmdError:
+    """Why the temporary file or folder of ``path`` could not be made, as one line."""
+    failure = write_failure(e, path.parent)
+    if failure is not None:
+        return failure
+    if e.errno in (errno.ENOENT, errno.ENOTDIR):
+        return InputError(f"cannot write here ({e.strerror})", path=path.parent,
+                          hint="the output's folder must exist and be a folder")
+    return WriteError(f"cannot write here ({e.strerror or e})", path=path.parent,
+                      hint="choose another folder for the output")
 
 
 @contextlib.contextmanager
@@ -176,25 +276,36 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
             try:
                 tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=".tmp",
                                             dir=path.parent))
-            except (PermissionError, FileNotFoundError) as e:
-                raise InputError(f"cannot write here ({e.strerror})", path=path.parent,
-                                 hint="choose a folder you can write to") from None
+            except OSError as e:
+                raise _cannot_create(e, path) from None
             # mkdtemp makes it private (0700); the finished folder is the user's, as mkdir's
             os.chmod(tmp, 0o777 & ~_UMASK)
         yield tmp
         if path.exists():
             old = path.with_name(f"{_temp_prefix(path)}old.tmp")
             os.replace(path, old)
-            os.replace(tmp, path)
+            try:
+                os.replace(tmp, path)
+            except BaseException:
+                os.replace(old, path)  # the previous output goes back where it was
+                raise
             if old.is_dir():
                 shutil.rmtree(old, ignore_errors=True)
             else:
                 old.unlink(missing_ok=True)
         else:
             os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
+        failure = write_failure(e, path.parent, tmp) if isinstance(
+            e, (OSError, RuntimeError)) else None
+        if isinstance(e, WriteError) and tmp is not None and e.path is not None and (
+                Path(e.path) == tmp or tmp in Path(e.path).parents):
+            # a file of the folder could not be written: name the folder the user gave
+            failure = WriteError(e.detail, path=path.parent, hint=e.hint)
+        if failure is not None:
+            raise failure from None
         raise
 
 
@@ -217,6 +328,92 @@ def _signals_deferred() -> Iterator[None]:
         mask(signal.SIG_SETMASK, old)
 
 
+class _OutputFile(io.RawIOBase):
+    """The temporary file of an output, as a raw binary file: every byte trmd writes itself
+    reaches the disk through :func:`os.pwrite` here, so that a full disk, a quota or a size limit
+    is an ``OSError`` the writer sees (and :func:`atomic_path` turns into one line), never a
+    short file. Reads (HDF5 reads back what it wrote) use :func:`os.preadv`."""
+
+    def __init__(self, path: str | Path) -> None:
+        super().__init__()
+        self.name = str(path)
+        self._fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0),
+                           0o666)
+        self._pos = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def fileno(self) -> int:
+        return self._fd
+
+    def readinto(self, b) -> int:
+        if hasattr(os, "preadv"):
+            n = os.preadv(self._fd, [b], self._pos)
+        else:  # macOS before 11
+            view = memoryview(b).cast("B")
+            data = os.pread(self._fd, len(view), self._pos)
+            n = len(data)
+            view[:n] = data
+        self._pos += n
+        return n
+
+    def write(self, b) -> int:
+        view = memoryview(b)
+        if view.ndim != 1 or view.itemsize != 1:
+            view = view.cast("B")
+        done = 0
+        while done < len(view):
+            done += os.pwrite(self._fd, view[done:], self._pos + done)
+        self._pos += done
+        return done
+
+    def seek(self, pos: int, whence: int = os.SEEK_SET) -> int:
+        base = {os.SEEK_SET: 0, os.SEEK_CUR: self._pos,
+                os.SEEK_END: os.fstat(self._fd).st_size}[whence]
+        if base + pos < 0:
+            raise OSError(errno.EINVAL, "negative seek position")
+        self._pos = base + pos
+        return self._pos
+
+    def tell(self) -> int:
+        return self._pos
+
+    def truncate(self, size: int | None = None) -> int:
+        size = self._pos if size is None else int(size)
+        os.ftruncate(self._fd, size)
+        return size
+
+    def close(self) -> None:
+        if not self.closed:
+            fd, self._fd = self._fd, -1
+            try:
+                super().close()
+            finally:
+                os.close(fd)
+
+
+def open_output(path: str | Path, text: bool = False):
+    """A file object writing ``path`` (a temporary from :func:`atomic_path`) through
+    :class:`_OutputFile`: binary, buffered; ``text=True``: UTF-8 text."""
+    binary = io.BufferedWriter(_OutputFile(path), buffer_size=1 << 20)
+    return io.TextIOWrapper(binary, encoding="utf-8") if text else binary
+
+
+def write_bytes(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically."""
+    path = Path(path)
+    with atomic_path(path) as tmp, open_output(tmp) as fh:
+        fh.write(data)
+    return path
+
+
 def to_uint(image: np.ndarray, bit_depth: int = 8) -> np.ndarray:
     """[0, 1] float → uint8/uint16, clipping out-of-range values."""
     if bit_depth not in (8, 16):
@@ -227,14 +424,22 @@ def to_uint(image: np.ndarray, bit_depth: int = 8) -> np.ndarray:
 
 
 def _encode(path: Path, image: np.ndarray, bit_depth: int) -> None:
+    """Encode in memory, then write the bytes ourselves: ``cv2.imwrite`` on a full disk may
+    report success over a short file."""
     import cv2
 
     arr = image if image.dtype in (np.uint8, np.uint16) else to_uint(image, bit_depth)
     if arr.ndim == 3:
         arr = arr[..., ::-1]  # RGB → OpenCV's BGR
-    if not cv2.imwrite(str(path), np.ascontiguousarray(arr)):
+    try:
+        ok, data = cv2.imencode(path.suffix, np.ascontiguousarray(arr))
+    except cv2.error:
+        ok = False
+    if not ok:
         raise InputError("could not encode image", path=path,
                          hint="use .png, .jpg or .tif")
+    with open_output(path) as fh:
+        fh.write(data.tobytes())
 
 
 def write_image(path: str | Path, image: np.ndarray, bit_depth: int = 8) -> Path:
@@ -246,23 +451,20 @@ def write_image(path: str | Path, image: np.ndarray, bit_depth: int = 8) -> Path
 
 
 def write_json(path: str | Path, obj) -> Path:
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
-    return path
+    return write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
 
 
 def write_text(path: str | Path, text: str) -> Path:
     path = Path(path)
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
+    with atomic_path(path) as tmp, open_output(tmp, text=True) as fh:
+        fh.write(text)
     return path
 
 
 def write_npz(path: str | Path, compress: bool = False, **arrays) -> Path:
     path = Path(path)
     with atomic_path(path, suffix=".npz") as tmp:
-        with open(tmp, "wb") as fh:
+        with open_output(tmp) as fh:
             (np.savez_compressed if compress else np.savez)(fh, **arrays)
     return path
 
@@ -379,6 +581,39 @@ def fmt_fraction(f: float) -> str:
 H5_LAYOUT_VERSION = 1
 
 
+class _HDF5File(_OutputFile):
+    """The temporary file of an HDF5 output, handed to h5py as a file object.
+
+    HDF5 calls :meth:`write` and :meth:`readinto` from C. An exception there (a full disk, a
+    Ctrl-C that lands in the callback) leaves HDF5 with metadata it cannot flush, and h5py then
+    dies with SIGSEGV while closing the file. So a failure is recorded and the call pretends to
+    have succeeded — every later write is dropped, the output is abandoned anyway — and
+    :class:`H5Writer` raises the recorded failure as soon as HDF5 has returned."""
+
+    failure: BaseException | None = None
+
+    def write(self, b) -> int:
+        size = memoryview(b).nbytes
+        if self.failure is None:
+            try:
+                return super().write(b)
+            except BaseException as e:  # noqa: BLE001 - raised by H5Writer once HDF5 returns
+                self.failure = e
+        return size
+
+    def readinto(self, b) -> int:
+        for _ in range(2):  # an interrupt landing here: finish the read, raise it later
+            try:
+                return super().readinto(b)
+            except BaseException as e:  # noqa: BLE001 - raised by H5Writer once HDF5 returns
+                if self.failure is None:
+                    self.failure = e
+                if not isinstance(e, KeyboardInterrupt):
+                    break
+        memoryview(b).cast("B")[:] = b"\0" * memoryview(b).nbytes
+        return memoryview(b).nbytes
+
+
 class H5Writer:
     """Incremental writer of the trmd HDF5 layout (atomic: a temp file renamed on close).
 
@@ -389,6 +624,9 @@ class H5Writer:
     simulator's true mean contrast threshold); ``windows/start_us``, ``windows/end_us`` (K,)
     int64 µs: exposure windows stored without frames. Events of consecutive samples share one
     timeline.
+
+    A write that fails (full disk, read-only folder) raises :class:`~trmd_cli.errors.WriteError`
+    from the call that met it, and the temporary file is removed.
 
     Usage::
 
@@ -403,30 +641,59 @@ class H5Writer:
 
         self.path = Path(path)
         self.width, self.height = int(width), int(height)
+        self._f = None
+        self._file: _HDF5File | None = None
         self._ctx = atomic_path(self.path, suffix=".h5")
         self._tmp = self._ctx.__enter__()
-        self._f = h5py.File(self._tmp, "w")
-        self._comp = compression
-        self._f.attrs.update({"format": "trmd", "version": H5_LAYOUT_VERSION,
-                              "width": self.width, "height": self.height, **(attrs or {})})
-        ev = self._f.create_group("events")
-        for key, dt in (("x", "u2"), ("y", "u2"), ("t", "i8"), ("p", "i1")):
-            ev.create_dataset(key, (0,), dtype=dt, maxshape=(None,), chunks=(1 << 16,),
-                              compression=compression)
+        try:
+            with self._guard():
+                self._file = _HDF5File(self._tmp)
+                self._f = h5py.File(self._file, "w")
+                self._comp = compression
+                self._f.attrs.update({"format": "trmd", "version": H5_LAYOUT_VERSION,
+                                      "width": self.width, "height": self.height,
+                                      **(attrs or {})})
+                ev = self._f.create_group("events")
+                for key, dt in (("x", "u2"), ("y", "u2"), ("t", "i8"), ("p", "i1")):
+                    ev.create_dataset(key, (0,), dtype=dt, maxshape=(None,), chunks=(1 << 16,),
+                                      compression=compression)
+        except BaseException as e:
+            self._abandon(e)
+            raise
         self._frames = None
         self._last_t = -1
+
+    @contextlib.contextmanager
+    def _guard(self) -> Iterator[None]:
+        """Run h5py calls; raise what the file met inside them (see :class:`_HDF5File`)."""
+        try:
+            yield
+        except BaseException:
+            if self._file is not None and self._file.failure is not None:
+                self._raise_failure()
+            raise
+        if self._file is not None and self._file.failure is not None:
+            self._raise_failure()
+
+    def _raise_failure(self):
+        e = self._file.failure
+        failure = write_failure(e, self.path.parent, self._tmp)
+        if failure is not None:
+            raise failure from None
+        raise e
 
     def add_events(self, stream) -> None:
         if len(stream) == 0:
             return
         if int(stream.t[0]) < self._last_t:
             raise InputError("events must be added in time order")
-        ev = self._f["events"]
-        n0 = ev["t"].shape[0]
-        for key in "xytp":
-            ds = ev[key]
-            ds.resize((n0 + len(stream),))
-            ds[n0:] = getattr(stream, key)
+        with self._guard():
+            ev = self._f["events"]
+            n0 = ev["t"].shape[0]
+            for key in "xytp":
+                ds = ev[key]
+                ds.resize((n0 + len(stream),))
+                ds[n0:] = getattr(stream, key)
         self._last_t = int(stream.t[-1])
 
     def add_frame(self, blurry: np.ndarray, exposure, sharp: np.ndarray | None = None,
@@ -435,6 +702,10 @@ class H5Writer:
         if blurry.shape[:2] != (self.height, self.width):
             raise InputError(f"frame is {blurry.shape[1]}x{blurry.shape[0]}, the file's sensor "
                              f"is {self.width}x{self.height}")
+        with self._guard():
+            self._add_frame(blurry, exposure, sharp, contrast)
+
+    def _add_frame(self, blurry, exposure, sharp, contrast) -> None:
         if self._frames is None:
             g = self._f.create_group("frames")
             chunk = (1, *blurry.shape)
@@ -468,21 +739,45 @@ class H5Writer:
         what a file that knows when its exposures were, but holds no images, carries."""
         starts = np.array([e.start_us for e in exposures], np.int64)
         ends = np.array([e.end_us for e in exposures], np.int64)
-        if "windows" in self._f:
-            raise InputError("exposure windows are already stored in this file")
-        g = self._f.create_group("windows")
-        g.create_dataset("start_us", data=starts)
-        g.create_dataset("end_us", data=ends)
+        with self._guard():
+            if "windows" in self._f:
+                raise InputError("exposure windows are already stored in this file")
+            g = self._f.create_group("windows")
+            g.create_dataset("start_us", data=starts)
+            g.create_dataset("end_us", data=ends)
 
     def close(self, ok: bool = True) -> None:
         if self._f is None:
             return
-        self._f.close()
-        self._f = None
-        if ok:
-            self._ctx.__exit__(None, None, None)
-        else:
-            self._ctx.__exit__(RuntimeError, RuntimeError("aborted"), None)
+        if not ok:
+            self._abandon(RuntimeError("aborted"))
+            return
+        try:
+            with self._guard():
+                f, self._f = self._f, None
+                f.close()
+                self._file.close()
+        except BaseException as e:
+            self._abandon(e)
+            raise
+        self._ctx.__exit__(None, None, None)
+
+    def _abandon(self, exc: BaseException) -> None:
+        """Close what is open (HDF5 can: failed writes were pretended done) and remove the
+        temporary file; ``exc`` is what went wrong (atomic_path re-raises it: swallowed here,
+        the caller raises its own)."""
+        try:
+            if self._f is not None:
+                self._f.close()
+        except BaseException:  # noqa: BLE001 - already failing
+            pass
+        finally:
+            self._f = None
+            if self._file is not None:
+                with contextlib.suppress(BaseException):
+                    self._file.close()
+            with contextlib.suppress(BaseException):
+                self._ctx.__exit__(type(exc), exc, None)
 
     def __enter__(self) -> "H5Writer":
         return self
@@ -491,11 +786,7 @@ class H5Writer:
         if exc_type is None:
             self.close(True)
         else:
-            try:
-                self._f.close()
-            finally:
-                self._f = None
-                self._ctx.__exit__(exc_type, exc, tb)
+            self._abandon(exc)
 
 
 def write_h5(path: str | Path, stream, *, blurry=None, exposures=None, sharp=None,
@@ -522,7 +813,7 @@ def write_events_npz(path: str | Path, stream, exposures=None, compress: bool = 
 def write_events_text(path: str | Path, stream) -> Path:
     """E2VID-style text: first line ``W H``, then ``t x y p`` with t in float seconds and p 0/1."""
     path = Path(path)
-    with atomic_path(path) as tmp, open(tmp, "w") as fh:
+    with atomic_path(path) as tmp, open_output(tmp, text=True) as fh:
         fh.write(f"{stream.width} {stream.height}\n")
         if len(stream):
             # seconds with µs resolution, written via integer parts so no float rounding

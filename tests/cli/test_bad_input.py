@@ -297,7 +297,7 @@ CASES = [
          "not a readable AEDAT 4 file"),
     Case("aedat4-magic-only", lambda d: _w(d / "m.aedat4", b"#!AER-DAT4.0\r\n"),
          "not a readable AEDAT 4 file"),
-    Case("aedat2-unsupported", lambda d: _w(d / "a.aedat", b"#!AER-DAT2.0\r\n" + bytes(64)),
+    Case("aedat30-unsupported", lambda d: _w(d / "a.aedat", b"#!AER-DAT3.0\r\n" + bytes(64)),
          "not supported"),
     # ---- MATLAB .mat
     *[Case(f"mat-cut-{int(f * 100)}%", lambda d, f=f: _w(d / "c.mat", cut(

@@ -343,7 +343,8 @@ CASES = [
          "tensor|do not match", names="{weights}"),
     Case("weights-metadata-says-2-channels", lambda d, g: _img_ev(g.image, g, *_trmd(
         _weights_meta(g, d / "w.safetensors", args=json.dumps({**_args(g), "channels": 2})))),
-         "do not describe a RENet", names="{weights}"),
+         "do not describe a RENet|metadata says channels = 1 but the architecture it describes "
+         "has channels = 2", names="{weights}"),
     # sizes come from the metadata: checked against the tensors before anything is allocated
     # (these two would ask for 1.3 TB of parameters, and for a billion modules)
     Case("weights-metadata-says-huge-widths", lambda d, g: _img_ev(g.image, g, *_trmd(

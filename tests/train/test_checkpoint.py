@@ -85,14 +85,71 @@ def test_a_failed_save_leaves_the_previous_checkpoint(tmp_path, monkeypatch):
                            state={"step": 1})
     before = path.read_bytes()
 
-    def boom(*a, **k):
-        raise KeyboardInterrupt  # as if interrupted while writing
+    from trmd_cli import write
 
-    monkeypatch.setattr("safetensors.torch.save_file", boom)
+    real_write = write._OutputFile.write
+
+    def boom(self, data):  # interrupted half way through writing the bytes
+        real_write(self, bytes(data)[: len(data) // 2])
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(write._OutputFile, "write", boom)
     with pytest.raises(KeyboardInterrupt):
         save_checkpoint(path, model=model, optimizer=opt, state={"step": 2})
     assert path.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ck.safetensors"]
+
+
+#: a child that saves a checkpoint of a 16 MiB model over and over, until it is killed
+_SAVING_FOREVER = """
+import sys, torch
+from trmd_cli.train.checkpoint import save_checkpoint
+model = torch.nn.Linear(2048, 2048)
+opt = torch.optim.SGD(model.parameters(), lr=0.1)
+while True:
+    save_checkpoint(sys.argv[1], model=model, optimizer=opt, state={"step": 1})
+"""
+
+
+@pytest.mark.skipif(not hasattr(__import__("signal"), "SIGKILL"), reason="kill -9")
+def test_kill_9_while_saving_leaves_only_temporaries_the_next_run_removes(tmp_path):
+    """safetensors' save_file wrote a temporary of its own (.tmpXXXXXX) that no trmd sweep
+    knew: killed inside it, the run folder kept it for good."""
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from trmd_cli.train.loop import _prepare_run_dir
+    from trmd_cli.train.steps import CHECKPOINT
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
+    proc = subprocess.Popen([sys.executable, "-c", _SAVING_FOREVER, str(run_dir / CHECKPOINT)],
+                            env=env)
+    foreign = re.compile(r"\.tmp[A-Za-z0-9]{6}")
+    try:
+        end = time.monotonic() + 60
+        while time.monotonic() < end and proc.poll() is None:
+            names = [p for p in run_dir.iterdir() if p.name != CHECKPOINT]
+            if any(foreign.fullmatch(p.name) for p in names) or any(
+                    p.stat().st_size > 0 for p in names if ".trmd-" in p.name):
+                break  # in the middle of a save
+            time.sleep(0.001)
+        else:
+            pytest.fail("the child never got to save")
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    left = [p.name for p in run_dir.iterdir() if p.name != CHECKPOINT]
+    assert left and not any(foreign.fullmatch(n) for n in left), left
+    (run_dir / ".tmpAbC123").write_bytes(b"left by an older trmd")  # safetensors' own, stale
+    _prepare_run_dir(run_dir, fresh=False)  # what resuming the run does first
+    assert [p.name for p in run_dir.iterdir()] in ([], [CHECKPOINT])
 
 
 def test_unreadable_or_foreign_files_are_refused(tmp_path):

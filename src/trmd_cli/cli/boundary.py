@@ -48,6 +48,7 @@ FLAGS: dict[str, str | tuple[str, str]] = {
     "device": "--device",
     "exposure": "--exposure",
     "exposure_us": "--exposure-ms",
+    "exposure_length_us": "--exposure-length",
     "fill_gaps": ("--fill-gaps", "--no-fill-gaps"),
     "fps": "--fps",
     "frames": "--frames",
@@ -69,9 +70,11 @@ FLAGS: dict[str, str | tuple[str, str]] = {
     "resume": ("--resume", "--resume"),
     "run_dir": "--out",
     "sensor": "--sensor",
+    "stamp": "--stamp",
     "threads": "--threads",
     "time_unit": "--time-unit",
     "times_us": "--timestamps",
+    "topics": "--topics",
     "weights": "--weights",
 }
 
@@ -176,17 +179,17 @@ def _run(fn: Callable, args, kwargs):
     except KeyboardInterrupt:
         raise fail("interrupted; no partial output was left", 130) from None
     except MemoryError:
-        raise fail("out of memory; close other programs, or give the command less at once "
-                   "(trmd train: --set data.batch_size=… or data.crop=…)", 1) from None
-    except Exception as e:  # noqa: BLE001 - the boundary is the place for it
+        raise fail(f"out of memory; {_LESS_MEMORY.get(fn.__name__, _LESS_MEMORY[''])}",
+                   1) from None
+    except OSError as e:
+        said = _os_error(e)
+        if said is None:
+            raise _unexpected(e) from None
         if state["verbose"]:
             err.print_exception()
-            raise fail(f"unexpected {type(e).__name__}: {_escape(str(e))}", 1) from None
-        raise fail(
-            f"unexpected {type(e).__name__}: {_escape(str(e))} "
-            "(run `trmd -v …` for the traceback and please report it)",
-            1,
-        ) from None
+        raise fail(_escape(as_flags(said)), 2) from None
+    except Exception as e:  # noqa: BLE001 - the boundary is the place for it
+        raise _unexpected(e) from None
     except BaseException as e:
         # native extensions raise their crashes outside Exception (pyo3's PanicException)
         if isinstance(e, (SystemExit, GeneratorExit)):
@@ -196,6 +199,47 @@ def _run(fn: Callable, args, kwargs):
         raise fail(f"unexpected {type(e).__name__} in a native library: "
                    f"{_escape(str(e))} (run `trmd -v …` for details and please report it)",
                    1) from None
+
+
+def _unexpected(e: BaseException) -> typer.Exit:
+    if state["verbose"]:
+        err.print_exception()
+        return fail(f"unexpected {type(e).__name__}: {_escape(str(e))}", 1)
+    return fail(f"unexpected {type(e).__name__}: {_escape(str(e))} "
+                "(run `trmd -v …` for the traceback and please report it)", 1)
+
+
+#: what each command can be given less of when memory runs out ('' = any other command)
+_LESS_MEMORY = {
+    "train": "close other programs, or give the run less at once: --set data.batch_size=… "
+             "or --set data.crop=…",
+    "voxelize": "close other programs, or ask for fewer windows at once (--exposure T0 T1), "
+                "or a smaller --n",
+    "deblur": "close other programs, or use --method edi, a smaller --n or --precision bf16",
+    "hfr": "close other programs, or write an .mp4 or a folder (a .gif keeps every frame "
+           "until the end), or use fewer --per-exposure frames",
+    "eval_command": "close other programs, or evaluate fewer methods at once (--methods)",
+    "": "close other programs, or run it on a machine with more memory (check the sensor "
+        "size the file declares: trmd info)",
+}
+
+
+def _os_error(e: OSError) -> str | None:
+    """One line for an OSError no writer or reader turned into a TrmdError: a full disk or a
+    read-only folder (cannot write here), a file it may not read; None for anything else."""
+    import errno
+
+    from ..write import write_failure
+
+    name = getattr(e, "filename", None)
+    folder = os.path.dirname(os.path.abspath(name)) if name else os.getcwd()
+    failure = write_failure(e, folder)
+    if failure is not None and (e.errno not in (errno.EACCES, errno.EPERM) or name is None):
+        return str(failure)
+    if e.errno in (errno.EACCES, errno.EPERM) and name is not None:
+        return (f"{name}: permission denied ({e.strerror}) — check its permissions (and its "
+                "folder's), or run as a user who may use it")
+    return None
 
 
 def _escape(text: str) -> str:

@@ -8,30 +8,46 @@ from typing import Annotated
 import typer
 
 from .boundary import guarded, warn
-from .options import Columns, OneBased, Overwrite, Sensor, TimeUnit, read_options
+from .options import (
+    Columns,
+    ExposureLength,
+    OneBased,
+    Overwrite,
+    Sensor,
+    Stamp,
+    TimeUnit,
+    Topics,
+    read_options,
+)
 
 
 def convert(
-    source: Annotated[Path, typer.Argument(help="Event file to read.")],
+    source: Annotated[Path, typer.Argument(help="Event file to read.", readable=False)],
     output: Annotated[Path, typer.Option("--output", "-o",
-                                         help="Output file: .npz, .h5 or .txt.")],
+                                         help="Output file: .npz, .h5 or .txt.", readable=False)],
     time_unit: TimeUnit = None,
     columns: Columns = None,
     one_based: OneBased = False,
     sensor: Sensor = None,
+    exposure_length: ExposureLength = None,
+    stamp: Stamp = None,
+    topics: Topics = None,
     overwrite: Overwrite = False,
 ) -> None:
     """Convert events (and frames with exposure windows, for .h5) to npz, HDF5 or text."""
     from ..errors import InputError
     from ..read import open_events
+    from ..read.paths import check_input_path
     from ..write import H5Writer, check_output, write_events_npz, write_events_text
 
     kind = output.suffix.lower()
     if kind not in (".npz", ".h5", ".hdf5", ".txt"):
         raise InputError(f"unknown output type {output.suffix!r}", path=output,
                          hint="use .npz, .h5 or .txt")
-    with open_events(source, read_options(columns, one_based, time_unit, sensor)) as rec:
-        check_output(output, overwrite)
+    check_input_path(source)
+    with open_events(source, read_options(columns, one_based, time_unit, sensor,
+                                          exposure_length, stamp, topics)) as rec:
+        check_output(output, overwrite, inputs=[source])
         for w in rec.warnings:
             warn(w)
         n = rec.num_events()

@@ -24,12 +24,15 @@ from .options import (
     Columns,
     Device,
     Exposure,
+    ExposureLength,
     OneBased,
     Overwrite,
     Precision,
     Sensor,
+    Stamp,
     Threads,
     TimeUnit,
+    Topics,
     parse_duration_us,
     read_options,
 )
@@ -53,7 +56,7 @@ TimeOffset = Annotated[str | None, typer.Option(
     "(real DAVIS data often needs tens of ms).")]
 Weights = Annotated[Path | None, typer.Option("--weights", help="TRMD weights (.safetensors); "
                                                  "implies --method trmd. Default: the shipped "
-                                                 "weights.")]
+                                                 "weights.", readable=False)]
 HotPixels = Annotated[bool, typer.Option("--hot-pixels/--keep-hot-pixels",
                                          help="Ignore the events of hot pixels (default on).")]
 BitDepth = Annotated[int, typer.Option("--bit-depth", help="PNG bit depth: 8 or 16.")]
@@ -106,8 +109,8 @@ def method_config(method: str | None, weights: Path | None, n: int | None, contr
 def deblur(
     inputs: Annotated[list[Path], typer.Argument(
         help="BLURRY EVENTS, or RECORDING, or IMAGES_DIR EVENTS|EVENTS_DIR|BINS_FILE.",
-        show_default=False)],
-    output: Annotated[Path, typer.Option("--output", "-o", help="Output folder.")],
+        show_default=False, readable=False)],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Output folder.", readable=False)],
     method: Method = None,
     n: NOpt = None,
     exposure: Exposure = None,
@@ -116,7 +119,8 @@ def deblur(
     compare: Annotated[bool, typer.Option(
         "--compare", help="Also write compare.png (blurry | sharp).")] = False,
     video: Annotated[Path | None, typer.Option(
-        "--video", help="Also write the latent frames as a video (.mp4 or .gif).")] = None,
+        "--video", help="Also write the latent frames as a video (.mp4 or .gif).",
+        readable=False)] = None,
     fps: Annotated[float, typer.Option("--fps", help="Playback rate of --video.")] = 10.0,
     bit_depth: BitDepth = 8,
     hot_pixels: HotPixels = True,
@@ -128,6 +132,9 @@ def deblur(
     sensor: Sensor = None,
     columns: Columns = None,
     one_based: OneBased = False,
+    exposure_length: ExposureLength = None,
+    stamp: Stamp = None,
+    topics: Topics = None,
     overwrite: Overwrite = False,
 ) -> None:
     """Deblur: write 2N+1 sharp frames per blurry frame, plus sharp.png, timestamps.txt and
@@ -156,15 +163,20 @@ def deblur(
         raise InputError("-o names a video, but deblur writes a folder of frames", path=output,
                          hint=f"use -o FOLDER --video {output.name}, or `trmd hfr -o "
                          f"{output.name}`")
-    check_output(output, overwrite)
+    check_output(output, overwrite, inputs=[*inputs, weights])
     if output.exists() and not output.is_dir():
         raise InputError("the output exists and is not a folder", path=output,
                          hint="choose a folder path for -o")
     if video is not None:
         check_video_path(video)
-        check_output(video, overwrite)
+        # a video inside the output folder would go with the folder it replaces
+        check_output(video, overwrite, inputs=[*inputs, weights])
+        if output.resolve() in video.resolve().parents:
+            raise InputError("--video is inside the -o folder, which deblur replaces whole",
+                             path=video, hint="write the video beside the folder")
 
-    with open_inputs(inputs, read_options(columns, one_based, time_unit, sensor),
+    with open_inputs(inputs, read_options(columns, one_based, time_unit, sensor,
+                                          exposure_length, stamp, topics),
                      exposure=exposure, offset_us=offset) as ins:
         for w in ins.warnings:
             warn(w)

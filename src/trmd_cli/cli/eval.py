@@ -12,13 +12,16 @@ from .boundary import err, guarded, progress_enabled, warn
 from .options import (
     Columns,
     Device,
+    ExposureLength,
     N,
     OneBased,
     Overwrite,
     Precision,
     Sensor,
+    Stamp,
     Threads,
     TimeUnit,
+    Topics,
     read_options,
 )
 
@@ -36,24 +39,25 @@ def eval_command(
     datasets: Annotated[list[Path], typer.Argument(
         help="Datasets: trmd HDF5 (from `trmd simulate`), GOPRO-style HDF5, a folder with "
              "blurry/ + events (or a bins file) + sharp/, or any recording with frames (no "
-             "ground truth).")],
+             "ground truth).", readable=False)],
     methods: Annotated[str, typer.Option(
         "--methods", help="Comma-separated: blurry, edi, edi-true-c, trmd.")
     ] = "blurry,edi,trmd",
     n: N = 3,
     json_out: Annotated[Path | None, typer.Option(
-        "--json", help="Also write every figure (per frame and means) to this JSON file.")] = None,
+        "--json", help="Also write every figure (per frame and means) to this JSON file.",
+        readable=False)] = None,
     limit: Annotated[int | None, typer.Option(
         "--limit", min=1, help="Evaluate only the first K frames of each dataset.")] = None,
     weights: Annotated[Path | None, typer.Option(
         "--weights", help="RE-Net weights (.safetensors) for trmd; default: the shipped "
-                          "weights (trmd is skipped when there are none).")] = None,
+                          "weights (trmd is skipped when there are none).", readable=False)] = None,
     gt: Annotated[bool | None, typer.Option(
         "--gt/--no-gt", help="Require ground truth, or judge without it (sharpness, noise, event "
                              "consistency). Default: whichever each dataset allows.")] = None,
     strip: Annotated[Path | None, typer.Option(
         "--strip", help="Write a compare strip (blurry | methods | ground truth) per frame "
-                        "into this folder.")] = None,
+                        "into this folder.", readable=False)] = None,
     overwrite: Overwrite = False,
     device: Device = "auto",
     threads: Threads = None,
@@ -62,22 +66,29 @@ def eval_command(
     columns: Columns = None,
     one_based: OneBased = False,
     sensor: Sensor = None,
+    exposure_length: ExposureLength = None,
+    stamp: Stamp = None,
+    topics: Topics = None,
 ) -> None:
     """Score deblurring methods: PSNR/SSIM against ground truth (middle frame and all 2N+1),
     or sharpness, noise and event consistency on real recordings without it."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
     from ..evaluate import evaluate, parse_methods
+    from ..read.paths import check_input_path
     from ..write import atomic_dir, check_output, write_json
 
+    for d in datasets:
+        check_input_path(d)
     chosen = parse_methods(methods)
     if weights is not None and "trmd" not in chosen:
         warn("--weights is ignored: trmd is not among --methods")
     if json_out is not None:
-        check_output(json_out, overwrite)
+        check_output(json_out, overwrite, inputs=[*datasets, weights])
     if strip is not None:
-        check_output(strip, overwrite)
-    options = read_options(columns, one_based, time_unit, sensor)
+        check_output(strip, overwrite, inputs=[*datasets, weights])
+    options = read_options(columns, one_based, time_unit, sensor,
+                           exposure_length, stamp, topics)
     progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                         console=err, disable=not progress_enabled(), transient=True)
     tasks: dict[str, int] = {}

@@ -37,12 +37,15 @@ from .options import (
     Columns,
     Device,
     Exposure,
+    ExposureLength,
     OneBased,
     Overwrite,
     Precision,
     Sensor,
+    Stamp,
     Threads,
     TimeUnit,
+    Topics,
     parse_duration_us,
     read_options,
 )
@@ -51,9 +54,10 @@ from .options import (
 def hfr(
     inputs: Annotated[list[Path], typer.Argument(
         help="BLURRY… EVENTS, or RECORDING, or IMAGES_DIR EVENTS|EVENTS_DIR|BINS_FILE.",
-        show_default=False)],
+        show_default=False, readable=False)],
     output: Annotated[Path, typer.Option(
-        "--output", "-o", help="slowmo.mp4, slowmo.gif, or a folder for PNG frames.")],
+        "--output", "-o", help="slowmo.mp4, slowmo.gif, or a folder for PNG frames.",
+        readable=False)],
     method: Method = None,
     n: NOpt = None,
     per_exposure: Annotated[int | None, typer.Option(
@@ -79,6 +83,9 @@ def hfr(
     sensor: Sensor = None,
     columns: Columns = None,
     one_based: OneBased = False,
+    exposure_length: ExposureLength = None,
+    stamp: Stamp = None,
+    topics: Topics = None,
     overwrite: Overwrite = False,
 ) -> None:
     """High-frame-rate video: every exposure's latent frames plus the gaps, in time order."""
@@ -112,9 +119,10 @@ def hfr(
     if not as_video and output.suffix and not output.is_dir():
         raise InputError(f"unknown output type {output.suffix!r}", path=output,
                          hint="use .mp4, .gif, or a folder")
-    check_output(output, overwrite)
+    check_output(output, overwrite, inputs=[*inputs, weights])
 
-    with open_inputs(inputs, read_options(columns, one_based, time_unit, sensor),
+    with open_inputs(inputs, read_options(columns, one_based, time_unit, sensor,
+                                          exposure_length, stamp, topics),
                      exposure=exposure, offset_us=offset) as ins:
         for w in ins.warnings:
             warn(w)

@@ -9,31 +9,47 @@ from typing import Annotated
 import typer
 
 from .boundary import guarded, warn
-from .options import Columns, OneBased, Sensor, TimeUnit, read_options
+from .options import (
+    Columns,
+    ExposureLength,
+    OneBased,
+    Sensor,
+    Stamp,
+    TimeUnit,
+    Topics,
+    read_options,
+)
 
 
 def info(
     file: Annotated[Path, typer.Argument(
-        help="Event file (txt, npz, npy, h5, aedat4, raw, dat, mat), or TRMD weights "
-             "(.safetensors).")],
+        help="Event file (txt, npz, npy, h5, aedat, aedat4, raw, dat, mat, ROS bag), an RPG "
+             "folder, or TRMD weights (.safetensors).", readable=False)],
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
     time_unit: TimeUnit = None,
     columns: Columns = None,
     one_based: OneBased = False,
     sensor: Sensor = None,
+    exposure_length: ExposureLength = None,
+    stamp: Stamp = None,
+    topics: Topics = None,
 ) -> None:
     """Describe an event file: format, events, sensor, duration, rate, polarity, frames.
 
     Given TRMD weights (.safetensors): architecture, parameters, what the network needs, the
     recipe and data it was trained on, and its validation figures.
     """
+    from ..read.paths import check_input_path
+
+    check_input_path(file)
     if file.suffix.lower() == ".safetensors":
         _weights_info(file, as_json)
         return
     from ..read import open_events
     from ..summary import summarize
 
-    with open_events(file, read_options(columns, one_based, time_unit, sensor)) as rec:
+    with open_events(file, read_options(columns, one_based, time_unit, sensor,
+                                        exposure_length, stamp, topics)) as rec:
         for w in rec.warnings:
             warn(w)
         s = summarize(rec)

@@ -13,7 +13,8 @@ from ..read.base import ReadOptions
 
 __all__ = [
     "N", "Exposure", "Sensor", "TimeUnit", "Columns", "OneBased", "Overwrite", "Device",
-    "Threads", "read_options", "parse_sensor", "parse_duration_us",
+    "Threads", "read_options", "parse_sensor", "parse_duration_us", "ExposureLength", "Stamp",
+    "Topics", "parse_exposure_length_us",
 ]
 
 N = Annotated[int, typer.Option("--n", min=1, max=16,
@@ -35,6 +36,17 @@ Overwrite = Annotated[bool, typer.Option("--overwrite", help="Replace an existin
 Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")]
 Threads = Annotated[Optional[int], typer.Option("--threads", min=1,
                                                 help="CPU threads for torch (default: all).")]
+ExposureLength = Annotated[Optional[str], typer.Option(
+    "--exposure-length", help="Exposure time of every frame, with its unit (20ms, 500us, "
+    "0.02s), for ROS bags without exposure messages and RPG folders, whose frames carry one "
+    "time stamp each.")]
+Stamp = Annotated[Optional[str], typer.Option(
+    "--stamp", help="What a frame's time stamp marks in ROS bags and RPG folders: start "
+    "(default) or middle of its exposure (rpg_dvs_ros stamps the middle).")]
+Topics = Annotated[Optional[str], typer.Option(
+    "--topics", help="ROS bag topics to read, comma-separated: the events, and the images and "
+    "their exposure times if wanted, e.g. /dvs/events,/dvs/image_raw (default: chosen by "
+    "message type).")]
 Precision = Annotated[str, typer.Option(
     "--precision", help="The network's arithmetic: auto (bfloat16 on CPUs with AMX / "
     "AVX512-BF16, float16 on CUDA, else float32), fp32, bf16 or fp16.")]
@@ -60,8 +72,37 @@ def parse_duration_us(text: str) -> int:
     return int(round(float(m[1]) * _UNIT_US[m[2] or "us"]))
 
 
+def parse_exposure_length_us(text: str | None) -> int | None:
+    """``"20ms"``, ``"500us"``, ``"0.02s"`` → whole µs (exact: no float in between); the unit is
+    required, a fraction of a microsecond refused."""
+    from decimal import Decimal, InvalidOperation
+
+    if text is None:
+        return None
+    m = re.fullmatch(r"\s*(\d+(?:\.\d*)?|\.\d+)\s*(s|ms|us|µs|ns)?\s*", text)
+    example = "e.g. --exposure-length 20ms (or 500us, 0.02s)"
+    if not m:
+        raise InputError(f"--exposure-length {text!r} is not a duration", hint=example)
+    if m[2] is None:
+        raise InputError(f"--exposure-length {text!r} needs its unit", hint=example)
+    scale = {"s": 1_000_000, "ms": 1_000, "us": 1, "µs": 1, "ns": Decimal("0.001")}[m[2]]
+    try:
+        us = Decimal(m[1]) * scale
+    except InvalidOperation:
+        raise InputError(f"--exposure-length {text!r} is not a duration", hint=example) from None
+    if us != us.to_integral_value():
+        raise InputError(f"--exposure-length {text} is {us.normalize():f} µs, not a whole "
+                         "number of microseconds",
+                         hint="event times are whole µs: give e.g. 20ms or 20001us")
+    if us <= 0:
+        raise InputError(f"--exposure-length {text} is not positive", hint=example)
+    return int(us)
+
+
 def read_options(columns: str | None = None, one_based: bool = False,
-                 time_unit: str | None = None, sensor: str | None = None) -> ReadOptions:
+                 time_unit: str | None = None, sensor: str | None = None,
+                 exposure_length: str | None = None, stamp: str | None = None,
+                 topics: str | None = None) -> ReadOptions:
     cols = None
     if columns:
         cols = tuple(c.strip().lower() for c in columns.split(","))
@@ -71,9 +112,20 @@ def read_options(columns: str | None = None, one_based: bool = False,
     if time_unit is not None and time_unit not in _UNIT_US:
         raise InputError(f"--time-unit {time_unit!r} is not one of s, ms, us, ns",
                          hint="e.g. --time-unit us")
+    if stamp is not None and stamp.strip().lower() not in ("start", "middle"):
+        raise InputError(f"--stamp {stamp!r} is neither start nor middle",
+                         hint="e.g. --stamp middle (the default is start)")
+    names = None
+    if topics is not None:
+        names = tuple(t.strip() for t in topics.split(",") if t.strip())
+        if not names:
+            raise InputError(f"--topics {topics!r} names no topic",
+                             hint="e.g. --topics /dvs/events,/dvs/image_raw")
     return ReadOptions(columns=cols, one_based=one_based,
                        time_unit=None if time_unit is None else time_unit.replace("µs", "us"),
-                       sensor=parse_sensor(sensor))
+                       sensor=parse_sensor(sensor),
+                       exposure_length_us=parse_exposure_length_us(exposure_length),
+                       stamp=None if stamp is None else stamp.strip().lower(), topics=names)
 
 
 def existing(path: Path) -> Path:

@@ -15,8 +15,10 @@ _NOISE = ("contrast_sigma", "refractory_us", "shot_noise_hz", "leak_hz", "hot_pi
 
 def simulate(
     input: Annotated[Path, typer.Argument(
-        help="A still image, a video file, or a folder of frames.", show_default=False)],
-    output: Annotated[Path, typer.Option("--output", "-o", help="Output .h5 (trmd layout).")],
+        help="A still image, a video file, or a folder of frames.", show_default=False,
+            readable=False)],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Output .h5 (trmd layout).",
+        readable=False)],
     count: Annotated[int, typer.Option(
         "--count", min=1, help="Samples per still image (each a new view, path and sensor).")] = 1,
     frames: Annotated[int | None, typer.Option(
@@ -33,7 +35,8 @@ def simulate(
         "--size", help="Output size WxH; the still or the frames are resized/cropped to it.")
     ] = "346x260",
     timestamps: Annotated[Path | None, typer.Option(
-        "--timestamps", help="Frame folder or video: file with one time in seconds per frame.")
+        "--timestamps", help="Frame folder or video: file with one time in seconds per frame.",
+        readable=False)
     ] = None,
     fps: Annotated[float | None, typer.Option(
         "--fps", help="Frame folder or video: frames per second (video default: its own).")
@@ -95,7 +98,10 @@ def simulate(
         raise typer.BadParameter("the output must end in .h5", param_hint="--output")
     if not input.exists():
         raise InputError("input not found", path=input, hint="check the path")
-    check_output(output, overwrite)
+    from ..read.paths import check_input_path
+
+    check_input_path(input)
+    check_output(output, overwrite, inputs=[input, timestamps])
     w, h = parse_sensor(size)  # type: ignore[misc]
     progress = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn(
         "{task.percentage:>3.0f}%"), TimeRemainingColumn(), console=err,

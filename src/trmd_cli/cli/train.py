@@ -108,17 +108,19 @@ def _hms(seconds: float) -> str:
 def train(
     data: Annotated[list[Path] | None, typer.Option(
         "--data", "-d", help="Training data: image folder (simulated on the fly), HDF5 set from "
-        "`trmd simulate`, or GOPRO-layout h5. Repeatable. Optional with --resume.")] = None,
+        "`trmd simulate`, or GOPRO-layout h5. Repeatable. Optional with --resume.",
+        readable=False)] = None,
     recipe: Annotated[Path | None, typer.Option(
-        "--recipe", "-r", help="Recipe TOML (default: the one shipped with trmd).")] = None,
+        "--recipe", "-r", help="Recipe TOML (default: the one shipped with trmd).",
+        readable=False)] = None,
     out: Annotated[Path | None, typer.Option(
         "--out", "-o", help="Run folder for checkpoints, log, curve and weights "
-        "(default: ./runs/<recipe name>).")] = None,
+        "(default: ./runs/<recipe name>).", readable=False)] = None,
     resume: Annotated[bool, typer.Option(
         "--resume", help="Continue the run in --out from its checkpoint.")] = False,
     init_weights: Annotated[Path | None, typer.Option(
         "--init-weights", help="Start from these weights (.safetensors), or from the weights "
-        "in another run's checkpoint.safetensors, instead of random.")
+        "in another run's checkpoint.safetensors, instead of random.", readable=False)
     ] = None,
     set_: Annotated[list[str] | None, typer.Option(
         "--set", help="Change a recipe value, e.g. --set optim.lr=1e-3 --set train.steps=500. "

@@ -11,29 +11,36 @@ from .boundary import err, guarded, progress_enabled, warn
 from .options import (
     Columns,
     Exposure,
+    ExposureLength,
     N,
     OneBased,
     Overwrite,
     Sensor,
+    Stamp,
     TimeUnit,
+    Topics,
     parse_duration_us,
     read_options,
 )
 
 
 def voxelize(
-    events: Annotated[Path, typer.Argument(help="Event file.")],
-    output: Annotated[Path, typer.Option("--output", "-o", help="Output .npz.")],
+    events: Annotated[Path, typer.Argument(help="Event file.", readable=False)],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Output .npz.", readable=False)],
     n: N = 3,
     exposure: Exposure = None,
     sensor: Sensor = None,
     time_unit: TimeUnit = None,
     columns: Columns = None,
     one_based: OneBased = False,
+    exposure_length: ExposureLength = None,
+    stamp: Stamp = None,
+    topics: Topics = None,
     time_offset: Annotated[Optional[str], typer.Option(
         "--time-offset", help="Shift the exposure window(s), e.g. -40ms.")] = None,
     preview: Annotated[Optional[Path], typer.Option(
-        "--preview", help="Write a red/blue PNG strip of the first window's 2N channels.")] = None,
+        "--preview", help="Write a red/blue PNG strip of the first window's 2N channels.",
+        readable=False)] = None,
     overwrite: Overwrite = False,
 ) -> None:
     """Write SCER voxels: `voxels` float32 (windows, 2N, H, W), `exposure` int64 µs (windows, 2)."""
@@ -41,18 +48,21 @@ def voxelize(
     from rich.progress import Progress
 
     from ..read import open_events
+    from ..read.paths import check_input_path
     from ..viz import voxel_preview
-    from ..voxel import scer_voxels, voxel_instants
+    from ..voxel import event_bins, scer_from_bins, voxel_instants
     from ..window import resolve_windows
     from ..write import check_output, write_image, write_npz
 
     if output.suffix.lower() != ".npz":
         raise typer.BadParameter("the output must end in .npz", param_hint="--output")
     offset = parse_duration_us(time_offset) if time_offset else 0
-    with open_events(events, read_options(columns, one_based, time_unit, sensor)) as rec:
-        check_output(output, overwrite)
+    check_input_path(events)
+    with open_events(events, read_options(columns, one_based, time_unit, sensor,
+                                          exposure_length, stamp, topics)) as rec:
+        check_output(output, overwrite, inputs=[events])
         if preview is not None:
-            check_output(preview, overwrite)
+            check_output(preview, overwrite, inputs=[events, output])
         for w in rec.warnings:
             warn(w)
         plan = resolve_windows(rec, exposure, time_unit, offset_us=offset)
@@ -63,9 +73,16 @@ def voxelize(
         with Progress(console=err, disable=not progress_enabled(), transient=True) as bar:
             task = bar.add_task("voxelizing", total=len(plan.windows))
             for i, win in enumerate(plan.windows):
-                ev = rec.events(win.start_us, win.end_us + 1)
-                empty += len(ev) == 0
-                vox[i] = scer_voxels(ev, win, n)
+                # SCER voxels add up over the events: a window of the whole recording is taken
+                # a piece at a time (memory: one piece, not the span); integer counts, so the
+                # sum is exactly the one-piece result
+                bins = np.zeros((2 * n, rec.height, rec.width), np.float64)
+                count = 0
+                for ev in rec.iter_events(win.start_us, win.end_us + 1):
+                    count += len(ev)
+                    bins += event_bins(ev, win, 2 * n)
+                empty += count == 0
+                vox[i] = scer_from_bins(bins.astype(np.float32))
                 bar.advance(task)
     if empty:
         warn(f"{empty} window(s) hold no events (static scene?): their voxels are zero")

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import struct
 from importlib import resources
 from math import prod
@@ -33,7 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import InputError, WeightsError
-from ..write import atomic_path
+from ..write import write_bytes
 
 if TYPE_CHECKING:  # torch stays unimported until weights are really saved or loaded
     from .renet import RENet
@@ -165,8 +166,7 @@ def save_weights(path: str | Path, model: RENet, *, meta: dict[str, Any] | None 
         metadata.setdefault(key, "null")
 
     data = _canonical(save(tensors, metadata=metadata))
-    with atomic_path(path, suffix=".safetensors") as tmp:
-        tmp.write_bytes(data)
+    write_bytes(path, data)
     return path
 
 
@@ -222,6 +222,9 @@ def _existing(path: str | Path | None) -> Path:
                            "weights")
     if not p.is_file():
         raise WeightsError("weights path is not a file", path=p, hint=_NO_WEIGHTS_HINT)
+    if not os.access(p, os.R_OK):
+        raise WeightsError("weights file cannot be read (permission denied)", path=p,
+                           hint="check its permissions (chmod u+r)")
     return p
 
 
@@ -239,17 +242,77 @@ def _sniff(path: Path) -> None:
                            hint="trmd never unpickles files; use a .safetensors weights file")
 
 
-def _stored_shapes(path: Path) -> dict[str, tuple[int, ...]]:
-    """Name → shape of every tensor in a safetensors file, from its header (no tensor read)."""
+def _stored_shapes(path: Path) -> dict[str, tuple[tuple[int, ...], str]]:
+    """Name → (shape, safetensors dtype such as ``F16``) of every tensor in a safetensors
+    file, from its header (no tensor read)."""
     from safetensors import SafetensorError, safe_open
 
     try:
         with safe_open(str(path), framework="numpy") as fh:
-            return {name: tuple(fh.get_slice(name).get_shape()) for name in fh.keys()}
+            return {name: (tuple(fh.get_slice(name).get_shape()),
+                           str(fh.get_slice(name).get_dtype()))
+                    for name in fh.keys()}
     except (SafetensorError, OSError) as e:
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise WeightsError(f"not a readable safetensors file ({reason})", path=path,
                            hint="the file is truncated or corrupt: copy it again") from None
+
+
+#: limits on what a weights file's header may hold (its metadata comes from strangers too)
+MAX_HEADER_BYTES = 100 << 20  # safetensors' own limit
+MAX_METADATA_BYTES = 1 << 20  # all metadata values together; trmd writes a few kB
+MAX_METADATA_DEPTH = 32  # nesting of a JSON metadata value
+
+
+def _no_duplicates(path: Path, what: str):
+    def hook(pairs):
+        seen: dict[str, Any] = {}
+        for key, value in pairs:
+            if key in seen:
+                raise WeightsError(f"the header names {what} {key!r} twice", path=path,
+                                   hint="the file was edited or written by another tool: use "
+                                   "weights written by `trmd train`")
+            seen[key] = value
+        return seen
+    return hook
+
+
+def _check_header(path: Path) -> dict[str, Any]:
+    """The safetensors header as JSON, refusing what the safetensors library takes silently:
+    a tensor (or metadata entry) named twice — the last one would win — and metadata beyond
+    :data:`MAX_METADATA_BYTES`."""
+    with open(path, "rb") as fh:
+        head = fh.read(8)
+        size = struct.unpack("<Q", head)[0] if len(head) == 8 else 0
+        if not 0 < size <= MAX_HEADER_BYTES:
+            raise WeightsError(f"not a readable safetensors file (header of {size} bytes)",
+                               path=path, hint="the file is truncated or corrupt: copy it again")
+        raw = fh.read(size)
+    try:
+        header = json.loads(raw, object_pairs_hook=_no_duplicates(path, "tensor"))
+    except (ValueError, RecursionError):
+        raise WeightsError("not a readable safetensors file (its header is not JSON)",
+                           path=path, hint="the file is truncated or corrupt: copy it again"
+                           ) from None
+    meta = header.get("__metadata__") or {}
+    total = sum(len(str(k)) + len(str(v)) for k, v in meta.items()) if isinstance(
+        meta, dict) else 0
+    if total > MAX_METADATA_BYTES:
+        raise WeightsError(f"metadata of {total} bytes (trmd writes a few kB; at most "
+                           f"{MAX_METADATA_BYTES} are read)", path=path,
+                           hint="the file was edited or written by another tool")
+    return header
+
+
+def _depth(value: Any) -> int:
+    """How deeply a decoded JSON value nests (iteratively: no recursion to exhaust)."""
+    deepest, todo = 0, [(value, 1)]
+    while todo:
+        v, d = todo.pop()
+        if isinstance(v, dict | list):
+            deepest = max(deepest, d)
+            todo.extend((c, d + 1) for c in (v.values() if isinstance(v, dict) else v))
+    return deepest
 
 
 def read_metadata(path: str | Path | None = None) -> dict[str, Any]:
@@ -272,6 +335,7 @@ def read_metadata(path: str | Path | None = None) -> dict[str, Any]:
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise WeightsError(f"not a readable safetensors file ({reason})", path=p,
                            hint="the file is truncated or corrupt: copy it again") from None
+    _check_header(p)
     return _decode(raw, p)
 
 
@@ -350,7 +414,7 @@ def _checkpoint_meta(raw: dict[str, str], path: Path) -> dict[str, Any]:
         name = str(model["name"])
         n, channels = int(model.get("n", 3)), int(model.get("channels", 1))
         args = dict(model.get("args") or {})
-    except (ValueError, KeyError, TypeError, AttributeError):
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError):
         raise WeightsError("a training checkpoint without a readable recipe", path=path,
                            hint="the file is corrupt: resume the run or train again") from None
     return {"format": FORMAT, "architecture": name, "model_class": "RENet",
@@ -382,11 +446,21 @@ def _decode(raw: dict[str, str], path: Path) -> dict[str, Any]:
                 meta[key] = int(value)
             else:
                 meta[key] = json.loads(value)
-    except ValueError:
+                if _depth(meta[key]) > MAX_METADATA_DEPTH:
+                    raise WeightsError(f"metadata entry {key!r} nests deeper than "
+                                       f"{MAX_METADATA_DEPTH} levels", path=path,
+                                       hint="the file was edited or written by another tool")
+    except (ValueError, RecursionError):
         raise WeightsError(f"metadata entry {key!r} is malformed", path=path,
                            hint="the file is corrupt: copy it again") from None
     if not isinstance(meta["args"], dict):
         raise WeightsError("metadata 'args' is not a JSON object", path=path)
+    for key in _INTS:  # repeated for quick checks: they must say what the architecture says
+        if key in meta and key in meta["args"] and meta[key] != meta["args"][key]:
+            raise WeightsError(f"metadata says {key} = {meta[key]} but the architecture it "
+                               f"describes has {key} = {meta['args'][key]!r}", path=path,
+                               hint="the metadata and tensors disagree: the file was edited "
+                                    "or written by another tool")
     return meta
 
 
@@ -459,7 +533,9 @@ def load_weights(path: str | Path | None = None, *, device: str = "cpu",
     # The metadata decides the architecture, so a stranger's file decides how much memory it
     # takes: build it on the meta device first (shapes only, nothing allocated) and check it
     # against the tensors the file really holds before building it for real.
-    stored = {k[len(prefix):]: v for k, v in _stored_shapes(p).items() if k.startswith(prefix)}
+    stored_full = {k[len(prefix):]: v for k, v in _stored_shapes(p).items()
+                   if k.startswith(prefix)}
+    stored = {k: v[0] for k, v in stored_full.items()}
     blocks = meta["args"].get("num_res_blocks")
     if isinstance(blocks, int) and blocks > len(stored):  # each block holds several tensors
         raise WeightsError(f"metadata asks for {blocks} residual blocks but the file holds "
@@ -483,11 +559,19 @@ def load_weights(path: str | Path | None = None, *, device: str = "cpu",
         raise WeightsError(f"tensors do not match the {meta.get('architecture')} architecture: "
                            + "; ".join(parts), path=p, hint="the metadata and tensors disagree: "
                            "the file was edited or written by another tool")
+    kinds = {name: t.is_floating_point() for name, t in skeleton.state_dict().items()}
     for name, shape in stored.items():
         if shape != expected[name]:
             raise WeightsError(f"tensor {name} has shape {shape}, the architecture "
                                f"needs {expected[name]}", path=p,
                                hint="the metadata and tensors disagree")
+        dtype = stored_full[name][1].upper()
+        if dtype.startswith(("F", "BF")) != kinds[name]:
+            need = "floating-point" if kinds[name] else "integer"
+            raise WeightsError(f"tensor {name} is stored as {dtype}, the architecture needs "
+                               f"{need} values", path=p,
+                               hint="the file was edited (a relabelled tensor type) or "
+                                    "written by another tool")
     model = RENet(**meta["args"])  # now no larger than the tensors in the file
     arch = meta.get("architecture")
     model.variant = canonical_name(arch) if isinstance(arch, str) else None

@@ -28,6 +28,19 @@ READERS = {
     "evt2": "prophesee:read_evt2",
     "dat": "prophesee:read_dat",
     "mat": "mat:read_mat",
+    "aedat2": "aedat:read_aedat2",
+    "aedat3": "aedat:read_aedat3",
+    "rosbag1": "rosbag:read_rosbag",
+    "rosbag2": "rosbag:read_rosbag",
+    "rpg": "rpg:read_rpg",
+}
+
+#: the options about stamped frames and bag topics, and the formats that use them (for the rest
+#: they are said to be ignored)
+_USED_BY = {
+    "exposure_length_us": ("rosbag1", "rosbag2", "rpg"),
+    "stamp": ("rosbag1", "rosbag2", "rpg"),
+    "topics": ("rosbag1", "rosbag2"),
 }
 
 
@@ -41,13 +54,20 @@ def open_events(path: str | Path, options: ReadOptions | None = None) -> Recordi
     fmt = detect_format(path)
     module, func = READERS[fmt].split(":")
     reader = getattr(importlib.import_module(f"{__package__}.{module}"), func)
+    options = options or ReadOptions()
     try:
-        return reader(path, options or ReadOptions())
+        rec = reader(path, options)
     except TrmdError as e:
         if e.path is not None:
             raise
         # helpers shared by every reader (unit conversion, make_stream) do not know the file
         raise type(e)(e.detail, path=path, hint=e.hint) from None
+    for name, formats in _USED_BY.items():
+        if getattr(options, name) is not None and fmt not in formats:
+            rec.warnings.append(f"`{name}` ignored: it applies to ROS bags"
+                                + (" and the RPG layout" if name != "topics" else "")
+                                + f", not to {FORMATS[fmt]} files")
+    return rec
 
 
 def require(module: str, extra: str = "formats", path: str | Path | None = None):

@@ -29,6 +29,13 @@ class ReadOptions:
         frame_size: (width, height) of the frames given with the events: the sensor's size
             when neither ``sensor`` nor the file states one (a frame's size is the sensor's;
             the largest event coordinate only bounds it).
+        exposure_length_us: the exposure time of every frame, µs, for files whose frames carry
+            one time stamp and no exposure (ROS bags without exposure messages, the RPG
+            layout); None = unknown.
+        stamp: what such a frame's stamp marks: ``"start"`` (None: the default) or
+            ``"middle"`` of its exposure.
+        topics: the ROS bag topics to read (events, images, exposure times); None = choose
+            them from the message types.
     """
 
     columns: tuple[str, ...] | None = None
@@ -36,6 +43,9 @@ class ReadOptions:
     time_unit: str | None = None
     sensor: tuple[int, int] | None = None
     frame_size: tuple[int, int] | None = None
+    exposure_length_us: int | None = None
+    stamp: str | None = None
+    topics: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,12 +57,14 @@ class Frame:
         exposure: the exposure window in µs on the events' clock, or None if unknown.
         index: frame number (from the file name or position).
         name: where it came from, for messages and output folder names.
+        note: a warning about the frame as read (values outside [0, 1] clipped), or None.
     """
 
     image: np.ndarray
     exposure: Exposure | None
     index: int
     name: str
+    note: str | None = None
 
 
 class Recording(ABC):
@@ -64,6 +76,9 @@ class Recording(ABC):
     height: int
     #: warnings collected while opening (size guessed, etc.), printed by the CLI
     warnings: list[str]
+    #: how to give the frames' exposure times when the file stores frames without them (None:
+    #: the generic advice); readers of frames with one time stamp set it
+    exposure_hint: str | None = None
 
     @abstractmethod
     def events(self, start_us: float | None = None, end_us: float | None = None) -> EventStream:
@@ -80,6 +95,15 @@ class Recording(ABC):
         """All events in time order, in pieces of at most ``max_events`` where the format
         allows (bounded memory for whole-file statistics and conversion)."""
         yield self.events()
+
+    def iter_events(self, start_us: float | None = None, end_us: float | None = None,
+                    max_events: int = 1 << 22) -> Iterator[EventStream]:
+        """The events of ``[start_us, end_us)`` in time order, in pieces of at most
+        ``max_events`` where the format allows (memory: one piece, however long the span)."""
+        ev = self.events(start_us, end_us)
+        step = max(int(max_events), 1)
+        for i in range(0, len(ev), step):
+            yield ev.take(slice(i, i + step))
 
     def iter_windows(self, exposures: Sequence[Exposure],
                      margin_us: int = 0) -> Iterator[EventStream]:

@@ -125,14 +125,16 @@ class ChunkedRecording(Recording):
         return FormatError(f"event {index} goes back in time (corrupt file?)", path=self.path,
                            hint="camera files are written in time order; re-export the recording")
 
+    #: the warning when the file states no sensor size (``{w}``, ``{h}``: the size taken)
+    size_guess_note = ("the file stores no sensor size; using {w}x{h} from the largest "
+                       "coordinates (pass `sensor=(W, H)` to set it)")
+
     def _settle_size(self, xmax: int, ymax: int) -> None:
         if self.width is None or self.height is None:
             w, h = max(xmax + 1, 1), max(ymax + 1, 1)
             self.width = self.width or w  # type: ignore[assignment]
             self.height = self.height or h  # type: ignore[assignment]
-            self.warnings.append(f"the file stores no sensor size; using {self.width}x"
-                                 f"{self.height} from the largest coordinates (pass "
-                                 "`sensor=(W, H)` to set it)")
+            self.warnings.append(self.size_guess_note.format(w=self.width, h=self.height))
         if xmax >= self.width or ymax >= self.height:
             axis, value = ("x", xmax) if xmax >= self.width else ("y", ymax)
             raise FormatError(f"{axis} coordinate {value} is outside the {self.width}x"
@@ -224,6 +226,23 @@ class ChunkedRecording(Recording):
     def close(self) -> None:
         self._close_live()
         self._recent = []
+
+    def iter_events(self, start_us: float | None = None, end_us: float | None = None,
+                    max_events: int = 1 << 22) -> Iterator[EventStream]:
+        """The events of ``[start_us, end_us)``, one decoded chunk at a time (sliced to at most
+        ``max_events``): a span of the whole file costs one chunk of memory."""
+        lo = -np.inf if start_us is None else start_us
+        hi = np.inf if end_us is None else end_us
+        step = max(int(max_events), 1)
+        if self._cache is not None:
+            ev = self._cache.slice(lo, hi)
+            for i in range(0, len(ev), step):
+                yield ev.take(slice(i, i + step))
+            return
+        for k in np.flatnonzero((self._last >= lo) & (self._first < hi)):
+            part = self._window(self._fetch(int(k), int(k)), lo, hi)
+            for i in range(0, len(part), step):
+                yield part.take(slice(i, i + step))
 
     def iter_chunks(self, max_events: int = 1 << 22) -> Iterator[EventStream]:
         """All events in time order, in pieces of at most ``max_events`` (one decoded chunk at a

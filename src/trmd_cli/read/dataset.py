@@ -287,7 +287,8 @@ def open_dataset(path: str | Path, n: int = 3, options: ReadOptions | None = Non
       (:mod:`trmd_cli.read.bins`);
     * a GOPRO-style HDF5 (``blur_images``, ``sharp_images``, ``voxel``);
     * any event file with stored frames and exposures (the trmd HDF5 with ``frames/sharp``
-      carries ground truth and the true contrast).
+      carries ground truth and the true contrast), a ROS 2 bag folder or an RPG folder among
+      them.
 
     Raises:
         InputError / FormatError: unreadable input, frames without exposure times, ground truth
@@ -296,12 +297,13 @@ def open_dataset(path: str | Path, n: int = 3, options: ReadOptions | None = Non
     from . import open_events
     from .folders import frames_from_recording, open_frame_folder
     from .gopro import is_gopro_h5
+    from .sniff import is_recording_folder
 
     path = Path(path)
     options = options or ReadOptions()
     if n < 1:
         raise InputError(f"N must be ≥ 1, got {n}", hint="use `n=3` (7 latent frames)")
-    if path.is_dir():
+    if path.is_dir() and not is_recording_folder(path):
         images = _first_dir(path, _BLURRY_DIRS)
         if images is None:
             raise InputError("the folder has no blurry/, blur/, images/ or blurred/ subfolder",

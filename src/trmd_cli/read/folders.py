@@ -37,7 +37,7 @@ import numpy as np
 from ..errors import InputError
 from ..events import EventStream, Exposure
 from .base import Frame, ReadOptions, Recording
-from .frames import IMAGE_EXTENSIONS, check_frame_matches, read_image
+from .frames import IMAGE_EXTENSIONS, check_frame_matches, read_image, read_image_noted
 
 __all__ = [
     "FrameWindow",
@@ -267,12 +267,12 @@ class FrameSource:
                 if entry is None:
                     continue
                 check_frame_matches(f.image, self.width, self.height, self.recording.path)
-                yield Frame(f.image, entry.exposure, f.index, f.name)
+                yield Frame(f.image, entry.exposure, f.index, f.name, f.note)
             return
         for entry in self.entries:
-            img = read_image(entry.image_path)  # type: ignore[arg-type]
+            img, note = read_image_noted(entry.image_path)  # type: ignore[arg-type]
             check_frame_matches(img, self.width, self.height, entry.image_path)
-            yield Frame(img, entry.exposure, entry.index, entry.name)
+            yield Frame(img, entry.exposure, entry.index, entry.name, note)
 
     def _events(self, margin_us: int) -> Iterator[EventStream]:
         if self.recording is not None:
@@ -369,10 +369,10 @@ class BinnedSource:
 
     def __iter__(self) -> Iterator[BinnedWindow]:
         for i, path in enumerate(self.images):
-            img = read_image(path)
+            img, note = read_image_noted(path)
             check_frame_matches(img, self.width, self.height, path)
             n = frame_number(path)
-            yield BinnedWindow(Frame(img, None, n if n is not None else i, path.stem),
+            yield BinnedWindow(Frame(img, None, n if n is not None else i, path.stem, note),
                                self.binned.frame(i))
 
     def close(self) -> None:
@@ -418,10 +418,12 @@ def frames_from_recording(recording: Recording) -> FrameSource:
                              "blurry frames too", path=recording.path,
                              hint="give the blurry image before it (BLURRY EVENTS), or a "
                                   "frames folder (IMAGES_DIR EVENTS)")
+        # formats whose frames carry one stamp each say how to give the exposure time
+        hint = recording.exposure_hint or (
+            "give the frames as a folder (with Exposure_start.txt / Exposure_end.txt) or one "
+            "image with `exposure=(T0, T1)`")
         raise InputError("the file stores frames but not their exposure times",
-                         path=recording.path,
-                         hint="give the frames as a folder (with Exposure_start.txt / "
-                              "Exposure_end.txt) or one image with `exposure=(T0, T1)`")
+                         path=recording.path, hint=hint)
     entries = [FrameEntry(k, f"{k:06d}", e) for k, e in enumerate(exposures)]
     return FrameSource(entries, recording.width, recording.height, recording=recording,
                        stored_frames=True, warnings=list(recording.warnings))

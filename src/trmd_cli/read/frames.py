@@ -8,19 +8,42 @@ import numpy as np
 
 from ..errors import FormatError, InputError
 
-__all__ = ["read_image", "IMAGE_EXTENSIONS"]
+__all__ = ["read_image", "read_image_noted", "clip_note", "IMAGE_EXTENSIONS"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
 
 
+def clip_note(image: np.ndarray, name: str) -> str | None:
+    """What clipping ``image`` to [0, 1] would change, as a warning, or None when nothing
+    (beyond float rounding) lies outside: intensities cannot be negative or above white."""
+    img = np.asarray(image)
+    if img.dtype.kind != "f" or not img.size:
+        return None
+    lo, hi = float(img.min()), float(img.max())
+    if lo >= -1e-6 and hi <= 1 + 1e-6:
+        return None
+    out = float(np.count_nonzero((img < 0) | (img > 1))) / img.size
+    return (f"frame {name}: {100 * out:.3g} % of its pixel values lie outside [0, 1] (from "
+            f"{lo:.4g} to {hi:.4g}) and were clipped — a frame holds intensities in [0, 1]: "
+            "check how it was stored")
+
+
 def read_image(path: str | Path) -> np.ndarray:
-    """Read an 8/16-bit gray or colour image as float32 in [0, 1].
+    """Read an 8/16-bit gray or colour image as float32 in [0, 1] (see
+    :func:`read_image_noted`, which also says what clipping changed)."""
+    return read_image_noted(path)[0]
+
+
+def read_image_noted(path: str | Path) -> tuple[np.ndarray, str | None]:
+    """Read an 8/16-bit gray or colour image as float32 in [0, 1], and the warning about the
+    values a float image held outside [0, 1] (clipped), if any.
 
     Returns:
         (H, W) for gray, (H, W, 3) RGB for colour (alpha dropped). Gray stored as 3 equal
         channels comes back as (H, W).
     Raises:
-        InputError: missing file. FormatError: not a readable image.
+        InputError: missing file; a float image holding NaN or infinite values (either: a
+            pixel that is not an intensity). FormatError: not a readable image.
     """
     import cv2
 
@@ -52,9 +75,18 @@ def read_image(path: str | Path) -> np.ndarray:
     elif img.dtype == np.uint16:
         out = img.astype(np.float32) / 65535.0
     elif img.dtype.kind == "f":
-        out = np.clip(img.astype(np.float32), 0, 1)
+        out = img.astype(np.float32)
+        bad = np.count_nonzero(~np.isfinite(out))
+        if bad:
+            raise InputError(f"{bad} pixel value(s) are NaN or infinite", path=path,
+                             hint="repair or re-export the image: pixels are intensities in "
+                                  "[0, 1]")
+        note = clip_note(out, path.stem)
+        out = np.clip(out, 0, 1)
     else:
         raise FormatError(f"unsupported pixel type {img.dtype}", path=path)
+    if img.dtype.kind != "f":
+        note = None
     if out.ndim == 3:
         if out.shape[2] == 4:
             out = out[..., :3]
@@ -65,7 +97,7 @@ def read_image(path: str | Path) -> np.ndarray:
             if (np.array_equal(out[..., 0], out[..., 1])
                     and np.array_equal(out[..., 1], out[..., 2])):
                 out = out[..., 0]
-    return np.ascontiguousarray(out)
+    return np.ascontiguousarray(out), note
 
 
 def check_frame_matches(image: np.ndarray, width: int, height: int, path) -> None:

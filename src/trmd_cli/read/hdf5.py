@@ -206,6 +206,13 @@ class HDF5Recording(Recording):
     def num_events(self) -> int:
         return self._n
 
+    def iter_events(self, start_us=None, end_us=None,
+                    max_events: int = 1 << 22) -> Iterator[EventStream]:
+        i0 = self._search(-np.inf if start_us is None else start_us, "left")
+        i1 = self._search(np.inf if end_us is None else end_us, "left")
+        for a in range(i0, i1, max(int(max_events), 1)):
+            yield self.events_by_index(a, min(i1, a + max(int(max_events), 1)))
+
     def iter_chunks(self, max_events: int = 1 << 22) -> Iterator[EventStream]:
         for i0 in range(0, self._n, max_events):
             yield self.events_by_index(i0, min(self._n, i0 + max_events))
@@ -286,6 +293,11 @@ class HDF5Recording(Recording):
                 img = np.asarray(self._f["frames/blurry"][k], np.float32)
             except _H5_ERRORS as e:
                 raise self._read_error(e) from None
+            bad = np.count_nonzero(~np.isfinite(img))
+            if bad:
+                raise InputError(f"frame {k} holds {bad} NaN or infinite pixel value(s)",
+                                 path=self.path, hint="repair the stored frames: pixels are "
+                                 "intensities in [0, 1]")
             if img.dtype.kind in "ui" or img.max(initial=0) > 1.0 + 1e-6:
                 img = img / (255.0 if img.max() <= 255 else 65535.0)
             if img.shape[:2] != (self.height, self.width):

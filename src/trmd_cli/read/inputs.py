@@ -30,6 +30,8 @@ from .folders import (
     open_frame_folder,
 )
 from .frames import IMAGE_EXTENSIONS, check_frame_matches, read_image
+from .paths import check_input_path
+from .sniff import is_recording_folder
 
 __all__ = ["Inputs", "open_inputs"]
 
@@ -74,7 +76,8 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
                 exposure: Sequence[float] | None = None, offset_us: int = 0) -> Inputs:
     """Understand the positional inputs of ``trmd deblur`` / ``trmd hfr``.
 
-    * ``RECORDING`` (AEDAT4, HDF5 with frames): every stored frame, its own exposure;
+    * ``RECORDING`` (AEDAT 2.0/3.1/4, HDF5 with frames, a ROS bag with images, an RPG folder):
+      every stored frame, its own exposure;
     * ``BLURRY EVENTS``: one image and an event file (or a folder of per-frame event files);
       the window is ``exposure`` (file's unit), else the one stored, else the events' span;
     * ``IMAGES_DIR EVENTS``: a frames folder with an event file (+ Exposure_start/end.txt) or a
@@ -95,8 +98,7 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
     if not paths:
         raise InputError("no input given", hint="trmd deblur BLURRY EVENTS -o OUT/")
     for p in paths:
-        if not p.exists():
-            raise InputError("not found", path=p, hint="check the path")
+        check_input_path(p)  # missing, a pipe, unreadable: one line, nothing opened
     names = [str(p) for p in paths]
     is_image = [p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS for p in paths]
 
@@ -104,7 +106,7 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
         if is_image[0]:
             raise InputError("got a blurry image but no events", path=paths[0],
                              hint="trmd deblur BLURRY EVENTS -o OUT/")
-        if paths[0].is_dir():
+        if paths[0].is_dir() and not is_recording_folder(paths[0]):
             raise InputError("got a frames folder but no events", path=paths[0],
                              hint="trmd deblur IMAGES_DIR EVENTS -o OUT/")
         rec = open_events(paths[0], options)
@@ -151,6 +153,7 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
                     "belongs to this image?", path=events,
                     hint="pass `exposure=(T0, T1)`, or give the frames folder / the recording")
             check_in_range(plan.windows[0], rec.time_range_us(), "exposure window", events)
+        del rec  # else its events stay in memory beside the second opening's
         src = open_frame_folder(image, events, options, exposures=plan.windows)
         return Inputs(src, True, names, warnings + list(src.warnings))
 

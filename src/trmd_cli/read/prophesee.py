@@ -73,6 +73,8 @@ _EVT2_VALID[list(_EVT2_TYPES)] = True
 
 #: hint for files that cannot be decoded
 _DAMAGED = "the file may be incomplete or damaged: copy it again or re-export the recording"
+#: EVT 2.0 words read past a chunk's end to find the time words that follow it
+_LOOKAHEAD_WORDS = 1 << 14
 
 
 @dataclass(frozen=True)
@@ -85,6 +87,7 @@ class PropheseeHeader:
         width, height: sensor size if the header states it, else None.
         encoding: ``"evt2"``, ``"evt21"``, ``"evt3"`` or None when the header does not say.
         sensor_hint: sensor size inferred from the plugin / sensor generation name, or None.
+        size_line: the header line(s) the size was read from, as written (for messages).
     """
 
     fields: dict[str, str] = field(default_factory=dict)
@@ -93,6 +96,7 @@ class PropheseeHeader:
     height: int | None = None
     encoding: str | None = None
     sensor_hint: tuple[int, int] | None = None
+    size_line: str | None = None
 
 
 def parse_header(head: bytes) -> PropheseeHeader:
@@ -119,10 +123,12 @@ def parse_header(head: bytes) -> PropheseeHeader:
             fields[key.lower()] = value.strip()
     width = height = None
     encoding = None
+    size_line = None
     if "geometry" in fields:
         m = re.match(r"\s*(\d+)\s*x\s*(\d+)", fields["geometry"])
         if m:
             width, height = int(m[1]), int(m[2])
+            size_line = f"% geometry {fields['geometry']}"
     if "format" in fields:
         parts = fields["format"].split(";")
         name = parts[0].strip().lower()
@@ -130,10 +136,15 @@ def parse_header(head: bytes) -> PropheseeHeader:
             encoding = name
         opts = dict(p.split("=", 1) for p in parts[1:] if "=" in p)
         if "width" in opts and "height" in opts:
-            width, height = int(opts["width"]), int(opts["height"])
+            try:
+                width, height = int(opts["width"]), int(opts["height"])
+                size_line = f"% format {fields['format']}"
+            except ValueError:
+                pass
     if width is None and "width" in fields and "height" in fields:
         try:
             width, height = int(fields["width"]), int(fields["height"])
+            size_line = f"% Width {fields['width']} / % Height {fields['height']}"
         except ValueError:
             pass
     if encoding is None and "evt" in fields:
@@ -144,7 +155,7 @@ def parse_header(head: bytes) -> PropheseeHeader:
         if fragment in name.replace(".", ""):
             hint = size
             break
-    return PropheseeHeader(fields, pos, width, height, encoding, hint)
+    return PropheseeHeader(fields, pos, width, height, encoding, hint, size_line)
 
 
 def _read_header(path: Path) -> PropheseeHeader:
@@ -153,8 +164,24 @@ def _read_header(path: Path) -> PropheseeHeader:
     return parse_header(head)
 
 
+#: no event camera made has a side longer than this (the largest are 1280x720; EVT 2.0 and 3.0
+#: address 2048x2048): a header declaring more is damaged, and would make every image of the
+#: run that large
+MAX_SENSOR_SIDE = 8192
+
+
 def _sensor(header: PropheseeHeader, options: ReadOptions,
-            warnings: list[str]) -> tuple[int | None, int | None]:
+            warnings: list[str], path: Path | None = None) -> tuple[int | None, int | None]:
+    if header.width is not None and header.height is not None and not (
+            0 < header.width <= MAX_SENSOR_SIDE and 0 < header.height <= MAX_SENSOR_SIDE):
+        said = f"the header line '{header.size_line}' declares a {header.width}x{header.height} " \
+               f"sensor"
+        if options.sensor:
+            warnings.append(f"{said}, which no camera has: using `sensor={options.sensor}`")
+            return options.sensor
+        raise FormatError(f"{said}; no event camera is larger than {MAX_SENSOR_SIDE}x"
+                          f"{MAX_SENSOR_SIDE} (a damaged header?)", path=path,
+                          hint="repair that line, or pass `sensor=(W, H)` with the camera's size")
     if header.width and header.height:
         if options.sensor and tuple(options.sensor) != (header.width, header.height):
             warnings.append(f"`sensor={options.sensor}` ignored: the "
@@ -194,18 +221,114 @@ def _whole_records(path: Path, offset: int, size: int, what: str) -> int:
     return n
 
 
+# -- corrupt time words --------------------------------------------------------------------
+
+#: a step of the clock by more than this (µs) between consecutive time words is more than a
+#: recording holds between two of them: if the clock comes back within the next
+#: :data:`RETURN_WORDS` time words, the words away from it are corrupt, not a wrap or a gap
+CLOCK_JUMP_US = 1 << 26  # 67 s
+RETURN_WORDS = 8
+
+
+def _steps(to: np.ndarray, start, period: int) -> np.ndarray:
+    """Clock steps ``start → to`` as the unwrapping reads them: a step back by more than half
+    the counter's period is the counter wrapping (so a step lies in [-period/2, period))."""
+    d = np.asarray(to, np.int64) - np.asarray(start, np.int64)
+    return np.where(d < -(period >> 1), d + period, d)
+
+
+def clock_excursions(raw: np.ndarray, last: int, period: int, jump: int,
+                     ahead: np.ndarray | None = None, at_end: bool = True) -> np.ndarray:
+    """Which time words of ``raw`` are corrupt: bool mask.
+
+    A word is corrupt when the clock (``raw``, a counter wrapping at ``period``) steps away from
+    the last good word by more than ``jump``, forward or back, and comes back — a step of 0 to
+    ``jump`` forward from that good word — within :data:`RETURN_WORDS` words; or, having jumped
+    forward by more than half the counter's period, when the file ends first. A step that
+    stays (a long quiet gap, a step back that is an error of its own) is kept: the words after
+    it are judged from it.
+
+    Args:
+        raw: the time words of a chunk, in file order (int64). last: the last good word before
+            them (-1 at the start of the file). ahead: the time words after the chunk (at most
+            :data:`RETURN_WORDS`), to see a return across the chunk's end. at_end: no more
+            time words follow ``ahead``.
+    """
+    n = len(raw)
+    bad = np.zeros(n, bool)
+    if n == 0:
+        return bad
+    ext = raw if ahead is None or not len(ahead) else np.concatenate([raw, ahead])
+    if last < 0 and len(ext) > 2:
+        # the file's first time word has nothing before it to be judged by: it is corrupt when
+        # far from all the words after it, which agree with each other
+        follow = ext[1:1 + RETURN_WORDS]
+        far = np.abs(_steps(follow, ext[0], period)) > jump
+        agree = (np.abs(_steps(follow[1:], follow[:-1], period)) <= jump).all()
+        if far.all() and agree:
+            bad[0] = True
+            if n > 1:
+                bad[1:] = clock_excursions(raw[1:], int(raw[1]), period, jump, ahead, at_end)
+            return bad
+    prev = np.concatenate([[raw[0] if last < 0 else last], raw[:-1]])
+    suspects = np.flatnonzero(np.abs(_steps(raw, prev, period)) > jump)
+    k = 0
+    while k < len(suspects):
+        i = int(suspects[k])
+        if i > 0 and bad[i - 1]:
+            k += 1  # judged with the run before it
+            continue
+        ref = int(raw[i - 1]) if i > 0 else last
+        step = int(_steps(raw[i], ref, period))
+        if abs(step) <= jump:
+            k += 1
+            continue
+        after = _steps(ext[i + 1:i + 1 + RETURN_WORDS], ref, period)
+        back = np.flatnonzero((after >= 0) & (after <= jump))
+        if len(back):
+            stop = i + 1 + int(back[0])  # the first word back on the clock
+        elif step > period >> 1 and at_end and len(after) < RETURN_WORDS and (np.abs(_steps(
+                ext[i + 1:], ext[i:-1], period)) <= jump).all():
+            # ahead by more than half the counter (a step back, read as ahead), staying there
+            # until the file ends: nothing confirms it
+            stop = len(ext)
+        else:
+            k += 1  # the clock stays where it went: a gap, or an error of its own
+            continue
+        bad[i:min(stop, n)] = True
+        k = int(np.searchsorted(suspects, stop, side="left"))
+    return bad
+
+
+def _excursion_note(kind: str, first: int, count: int, to_us: int, from_us: int,
+                    dropped: int, what: str) -> str:
+    """The warning for corrupt time words skipped while reading."""
+    many = f"{count} corrupt {kind}s (the first, {what} {first}," if count > 1 else \
+        f"{what} {first} is a corrupt {kind} ("
+    events = f"; {dropped} event(s) they timed were dropped" if dropped else ""
+    return (f"{many} jumps the clock from {from_us / 1e6:.6f} s to {to_us / 1e6:.6f} s, and "
+            f"the next time words jump back): skipped, not taken for a clock wrap{events}")
+
+
 # -- EVT 2.0 ---------------------------------------------------------------------------------
 
 
 def decode_evt2_words(words: np.ndarray, state: tuple[int, int, int] = (-1, 0, -1),
-                      *, path: Path | None = None, first_word: int = 0):
+                      *, path: Path | None = None, first_word: int = 0,
+                      ahead: np.ndarray | None = None, at_end: bool = True,
+                      corrupt: list | None = None):
     """Decode EVT 2.0 words (uint32) into CD events.
 
     Args:
         words: (W,) uint32 little-endian words.
         state: ``(last_raw_time_high, wraps, time_high)`` carried from the previous chunk;
-            ``time_high`` is the unwrapped time-high (units of 64 µs), -1 before the first one.
+            ``time_high`` is the unwrapped time-high (units of 64 µs), -1 before the first one
+            (-2 after a corrupt one).
         first_word: index of ``words[0]`` in the file, for error messages.
+        ahead: the words after ``words`` (a few thousand suffice), to tell a corrupt time-high
+            word near the chunk's end; at_end: nothing follows ``ahead``.
+        corrupt: if given, one ``(word index, time µs, previous time µs, events dropped)`` is
+            appended per corrupt time-high word skipped (see :func:`clock_excursions`).
     Returns:
         ``(x, y, t, p, state_after, dropped)``: uint16, uint16, int64 µs, int8 ±1 arrays, the
         state for the next chunk, and the number of CD events dropped because no time-high word
@@ -225,13 +348,25 @@ def decode_evt2_words(words: np.ndarray, state: tuple[int, int, int] = (-1, 0, -
     is_th = typ == 0x8
     th_raw = (w[is_th] & 0x0FFFFFFF).astype(np.int64)
     if len(th_raw):
-        prev = np.concatenate([[last_raw if last_raw >= 0 else th_raw[0]], th_raw])
-        # the 28-bit time-high wraps every 4.77 h: count the big backward steps
-        wrap = wraps + np.cumsum(np.diff(prev) < -(1 << 27))
-        th = th_raw + (wrap << 28)
-        state_after = (int(th_raw[-1]), int(wrap[-1]), int(th[-1]))
+        later = None
+        if ahead is not None and len(ahead):
+            a = np.asarray(ahead, np.uint32)
+            later = (a[(a >> 28) == 0x8] & 0x0FFFFFFF).astype(np.int64)[:RETURN_WORDS]
+        skip = clock_excursions(th_raw, last_raw, 1 << 28, CLOCK_JUMP_US >> 6, later, at_end)
+        good = ~skip
+        kept = th_raw[good]
+        th = np.full(len(th_raw), -2, np.int64)  # -2: timed by a corrupt word
+        if len(kept):
+            prev = np.concatenate([[last_raw if last_raw >= 0 else kept[0]], kept])
+            # the 28-bit time-high wraps every 4.77 h: count the big backward steps
+            wrap = wraps + np.cumsum(np.diff(prev) < -(1 << 27))
+            th[good] = kept + (wrap << 28)
+            state_after = (int(kept[-1]), int(wrap[-1]), int(th[-1]))
+        else:
+            state_after = (last_raw, wraps, -2)
     else:
         th = th_raw
+        skip = None
         state_after = state
     is_cd = typ <= 0x1
     # for each CD word, the number of time-high words before it indexes [time_high, *th]
@@ -239,8 +374,17 @@ def decode_evt2_words(words: np.ndarray, state: tuple[int, int, int] = (-1, 0, -
     highs = np.concatenate([[time_high], th])[which]
     cd = w[is_cd]
     keep = highs >= 0
-    dropped = int(len(cd) - keep.sum())
-    if dropped:
+    dropped = int((highs == -1).sum())
+    if skip is not None and skip.any() and corrupt is not None:
+        th_at = np.flatnonzero(is_th)
+        lost = np.bincount(which[highs == -2], minlength=len(th) + 1)[1:]
+        good_before = np.concatenate([[time_high], th])
+        for j in np.flatnonzero(skip & ~np.concatenate([[False], skip[:-1]])):
+            run = j + int(np.argmin(skip[j:])) if not skip[j:].all() else len(skip)
+            prev_us = int(good_before[j]) << 6 if good_before[j] >= 0 else 0
+            corrupt.append((first_word + int(th_at[j]), int(th_raw[j]) << 6, prev_us,
+                            int(lost[j:run].sum()), run - j))
+    if not keep.all():
         cd, highs = cd[keep], highs[keep]
     t = highs << 6
     t |= (cd >> 22) & 0x3F
@@ -262,18 +406,24 @@ class Evt2Recording(ChunkedRecording):
                               hint="check the '% evt' / '% format' header lines")
         warnings: list[str] = []
         _ignore_time_unit(options, "EVT 2.0", warnings)
-        width, height = _sensor(header, options, warnings)
+        width, height = _sensor(header, options, warnings, path)
         super().__init__(path, "evt2", width, height, warnings)
         self.header = header
         self._chunk_words = int(chunk_words)
         self._num_words = _whole_records(path, header.data_offset, 4, "32-bit word")
         self._dropped = 0
+        self._corrupt: list[tuple[int, int, int, int, int]] = []
         self._counting = True
         self._build_index()
         self._counting = False
         if self._dropped:
             self.warnings.append(f"{self._dropped} event(s) before the first time-high word "
                                  "were dropped (their time is unknown)")
+        if self._corrupt:
+            word, to_us, from_us, _, _ = self._corrupt[0]
+            self.warnings.append(_excursion_note(
+                "TIME_HIGH word", word, sum(c[4] for c in self._corrupt), to_us, from_us,
+                sum(c[3] for c in self._corrupt), "word"))
 
     def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
         state = (-1, 0, -1) if resume is None else resume
@@ -282,8 +432,13 @@ class Evt2Recording(ChunkedRecording):
             fh.seek(self.header.data_offset + 4 * k * self._chunk_words)
             while k * self._chunk_words < self._num_words:
                 words = np.fromfile(fh, "<u4", self._chunk_words)
+                here = fh.tell()
+                ahead = np.fromfile(fh, "<u4", _LOOKAHEAD_WORDS)
+                fh.seek(here)
+                end = (k + 1) * self._chunk_words + len(ahead) >= self._num_words
                 x, y, t, p, after, dropped = decode_evt2_words(
-                    words, state, path=self.path, first_word=k * self._chunk_words)
+                    words, state, path=self.path, first_word=k * self._chunk_words,
+                    ahead=ahead, at_end=end, corrupt=self._corrupt if self._counting else None)
                 if self._counting:
                     self._dropped += dropped
                 yield Chunk(k, x, y, t, p, resume=state)
@@ -302,11 +457,17 @@ _DAT_DTYPE = np.dtype([("t", "<u4"), ("d", "<u4")])
 
 
 def decode_dat_records(records: np.ndarray, state: tuple[int, int] = (-1, 0), *,
-                       path: Path | None = None, first_record: int = 0):
+                       path: Path | None = None, first_record: int = 0,
+                       ahead: np.ndarray | None = None, at_end: bool = True,
+                       corrupt: list | None = None):
     """Decode .dat CD records (structured ``t``/``d`` uint32).
 
     Args:
         state: ``(last_raw_time, wraps)`` carried from the previous chunk (-1 at the start).
+        ahead: the records after these (a few), to tell a corrupt time near the chunk's end;
+            at_end: nothing follows ``ahead``.
+        corrupt: if given, one ``(record index, time µs, previous time µs, 0, count)`` is
+            appended per run of records skipped for a corrupt time (:func:`clock_excursions`).
     Returns:
         ``(x, y, t, p, state_after)`` with t unwrapped to int64 µs.
     Raises:
@@ -315,6 +476,18 @@ def decode_dat_records(records: np.ndarray, state: tuple[int, int] = (-1, 0), *,
     raw_t = records["t"].astype(np.int64)
     d = records["d"]
     last_raw, wraps = state
+    later = None if ahead is None else np.asarray(ahead["t"], np.int64)[:RETURN_WORDS]
+    skip = clock_excursions(raw_t, last_raw, 1 << 32, CLOCK_JUMP_US, later, at_end)
+    if skip.any():
+        if corrupt is not None:
+            for j in np.flatnonzero(skip & ~np.concatenate([[False], skip[:-1]])):
+                run = j + int(np.argmin(skip[j:])) if not skip[j:].all() else len(skip)
+                prev = int(raw_t[j - 1]) if j > 0 else max(last_raw, 0)
+                corrupt.append((first_record + int(j), int(raw_t[j]), prev, 0, run - j))
+        kept_at = np.flatnonzero(~skip)
+        raw_t, d = raw_t[~skip], d[~skip]
+    else:
+        kept_at = None
     if len(raw_t):
         prev = np.concatenate([[last_raw if last_raw >= 0 else raw_t[0]], raw_t])
         # uint32 µs wraps every 71.6 min: a big backward step is a wrap, a small one corruption
@@ -326,7 +499,8 @@ def decode_dat_records(records: np.ndarray, state: tuple[int, int] = (-1, 0), *,
     pol = d >> 28
     if len(pol) and pol.max() > 1:
         i = int(np.flatnonzero(pol > 1)[0])
-        raise FormatError(f"record {first_record + i} has polarity {int(pol[i])}, expected 0 "
+        at = i if kept_at is None else int(kept_at[i])
+        raise FormatError(f"record {first_record + at} has polarity {int(pol[i])}, expected 0 "
                           "or 1 (corrupt file?)", path=path,
                           hint=_DAMAGED)
     x = (d & 0x3FFF).astype(np.uint16)
@@ -342,7 +516,7 @@ class DatRecording(ChunkedRecording):
         header = _read_header(path)
         warnings: list[str] = []
         _ignore_time_unit(options, ".dat", warnings)
-        width, height = _sensor(header, options, warnings)
+        width, height = _sensor(header, options, warnings, path)
         super().__init__(path, "dat", width, height, warnings)
         self.header = header
         with open(path, "rb") as fh:
@@ -362,7 +536,15 @@ class DatRecording(ChunkedRecording):
         self._data_offset = header.data_offset + 2
         self._chunk = int(chunk_events)
         self._num_records = _whole_records(path, self._data_offset, 8, "8-byte event record")
+        self._corrupt: list[tuple[int, int, int, int, int]] = []
+        self._counting = True
         self._build_index()
+        self._counting = False
+        if self._corrupt:
+            first, to_us, from_us, _, _ = self._corrupt[0]
+            self.warnings.append(_excursion_note(
+                "record time", first, sum(c[4] for c in self._corrupt), to_us, from_us, 0,
+                "record"))
 
     def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
         state = (-1, 0) if resume is None else resume
@@ -371,8 +553,13 @@ class DatRecording(ChunkedRecording):
             fh.seek(self._data_offset + 8 * k * self._chunk)
             while k * self._chunk < self._num_records:
                 rec = np.fromfile(fh, _DAT_DTYPE, self._chunk)
-                x, y, t, p, after = decode_dat_records(rec, state, path=self.path,
-                                                       first_record=k * self._chunk)
+                here = fh.tell()
+                ahead = np.fromfile(fh, _DAT_DTYPE, RETURN_WORDS)
+                fh.seek(here)
+                end = (k + 1) * self._chunk + len(ahead) >= self._num_records
+                x, y, t, p, after = decode_dat_records(
+                    rec, state, path=self.path, first_record=k * self._chunk, ahead=ahead,
+                    at_end=end, corrupt=self._corrupt if self._counting else None)
                 yield Chunk(k, x, y, t, p, resume=state)
                 state = after
                 k += 1
@@ -403,7 +590,7 @@ class Evt3Recording(ChunkedRecording):
                               hint="check the '% evt' / '% format' header lines")
         warnings: list[str] = []
         _ignore_time_unit(options, "EVT 3.0", warnings)
-        width, height = _sensor(header, options, warnings)
+        width, height = _sensor(header, options, warnings, path)
         super().__init__(path, "evt3", width, height, warnings)
         self.header = header
         self._batch_bytes = int(batch_bytes)
@@ -411,6 +598,14 @@ class Evt3Recording(ChunkedRecording):
         self._build_index()
         if words and self.num_events() == 0:
             _check_has_time_words(path, header.data_offset, words)
+        unknown = _undefined_evt3_words(path, header.data_offset, words)
+        if unknown:
+            count, first, kinds = unknown
+            self.warnings.append(
+                f"{count} word(s) of type{'s' if len(kinds) > 1 else ''} "
+                f"{', '.join(f'0x{k:X}' for k in kinds)}, which EVT 3.0 does not define, were "
+                f"skipped (the first is word {first}): a damaged file? the events around them "
+                "may be wrong")
 
     def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
         try:
@@ -426,6 +621,31 @@ class Evt3Recording(ChunkedRecording):
         except (OSError, ValueError, RuntimeError) as e:
             raise FormatError(f"EVT 3.0 decoding failed: {e}", path=self.path,
                               hint=_DAMAGED) from None
+
+
+#: the word types EVT 3.0 defines (bits 15–12): ADDR_Y, ADDR_X, VECT_BASE_X, VECT_12, VECT_8,
+#: TIME_LOW, CONTINUED_4, TIME_HIGH, EXT_TRIGGER, OTHERS, CONTINUED_12
+_EVT3_VALID = np.zeros(16, bool)
+_EVT3_VALID[[0x0, 0x2, 0x3, 0x4, 0x5, 0x6, 0x7, 0x8, 0xA, 0xE, 0xF]] = True
+
+
+def _undefined_evt3_words(path: Path, offset: int, words: int
+                          ) -> tuple[int, int, list[int]] | None:
+    """(count, index of the first, their types) of the words whose type EVT 3.0 does not
+    define — which the decoder skips without a word — or None."""
+    chunk = 1 << 22
+    count, first, kinds = 0, -1, set()
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        for start in range(0, words, chunk):
+            typ = np.fromfile(fh, "<u2", min(chunk, words - start)) >> 12
+            bad = ~_EVT3_VALID[typ]
+            if bad.any():
+                at = np.flatnonzero(bad)
+                count += len(at)
+                first = start + int(at[0]) if first < 0 else first
+                kinds.update(int(k) for k in np.unique(typ[at]))
+    return (count, first, sorted(kinds)) if count else None
 
 
 def _check_has_time_words(path: Path, offset: int, words: int) -> None:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from ..errors import FormatError, InputError
 
-__all__ = ["detect_format", "FORMATS"]
+__all__ = ["detect_format", "FORMATS", "is_rpg_folder", "is_ros2_folder", "is_recording_folder"]
 
 #: format name → one-line description (for messages and `trmd info`)
 FORMATS = {
@@ -19,12 +19,21 @@ FORMATS = {
     "evt2": "Prophesee EVT 2.0 .raw",
     "dat": "Prophesee .dat (CD events)",
     "mat": "MATLAB .mat (eSL-Net layout)",
+    "aedat2": "jAER AEDAT 2.0",
+    "aedat3": "cAER / DV AEDAT 3.1",
+    "rosbag1": "ROS 1 bag",
+    "rosbag2": "ROS 2 bag (folder, .db3 or .mcap)",
+    "rpg": "RPG event-camera folder (events.txt, images.txt, images/)",
 }
 
 _EXT = {
     ".txt": "text", ".csv": "text", ".dat": "dat", ".npz": "npz", ".npy": "npy", ".h5": "hdf5",
     ".hdf5": "hdf5", ".hdf": "hdf5", ".aedat4": "aedat4", ".mat": "mat", ".raw": None,
+    ".aedat": "aedat2", ".bag": "rosbag1", ".db3": "rosbag2", ".mcap": "rosbag2",
 }
+
+#: the first bytes of a ROS 2 bag's storage files: SQLite 3 and MCAP
+_ROS2_MAGIC = (b"SQLite format 3\x00", b"\x89MCAP0\r\n")
 
 
 def detect_format(path: str | Path) -> str:
@@ -38,8 +47,7 @@ def detect_format(path: str | Path) -> str:
     if not path.exists():
         raise InputError("file not found", path=path, hint="check the path")
     if path.is_dir():
-        raise InputError("is a folder, expected an event file", path=path,
-                         hint="give the event file inside it")
+        return _folder_format(path)
     with open(path, "rb") as fh:
         head = fh.read(4096)
     if not head:
@@ -56,6 +64,18 @@ def detect_format(path: str | Path) -> str:
         return "npy"
     if head.startswith(b"#!AER-DAT4"):
         return "aedat4"
+    if head.startswith((b"#!AER-DAT2.0\r\n", b"#!AER-DAT2.0\n")):
+        return "aedat2"
+    if head.startswith((b"#!AER-DAT3.1\r\n", b"#!AER-DAT3.1\n")):
+        return "aedat3"
+    if head.startswith(b"#ROSBAG V2.0\n"):
+        return "rosbag1"
+    if head.startswith(b"#ROSBAG V"):
+        raise FormatError(f"{head[:12].decode(errors='replace')} bags are not supported",
+                          path=path, hint="migrate it to a V2.0 bag (`rosbag fix`), or convert "
+                          "it to a ROS 2 bag")
+    if path.suffix.lower() in (".db3", ".mcap") and head.startswith(_ROS2_MAGIC):
+        return "rosbag2"
     if head.startswith(b"#!AER-DAT"):
         raise FormatError(f"{head[:12].decode(errors='replace')} files are not supported yet",
                           path=path, hint="convert to AEDAT4 with DV, or to .h5/.npz")
@@ -72,6 +92,46 @@ def detect_format(path: str | Path) -> str:
         return "text"
     raise FormatError("unknown event file format", path=path,
                       hint="supported: " + ", ".join(sorted(FORMATS)))
+
+
+def is_rpg_folder(path: Path) -> bool:
+    """The RPG event-camera layout: ``events.txt`` and ``images.txt`` in the folder."""
+    return (path / "events.txt").is_file() and (path / "images.txt").is_file()
+
+
+def is_ros2_folder(path: Path) -> bool:
+    """A ROS 2 bag: a folder holding ``metadata.yaml``."""
+    return (path / "metadata.yaml").is_file()
+
+
+def is_recording_folder(path: Path) -> bool:
+    """A folder that is one recording, read like an event file: a ROS 2 bag or the RPG
+    layout. A folder that also holds the frames-folder layout (``blurry/``, ``Exposure_*.txt``)
+    is not: it keeps its old meaning."""
+    path = Path(path)
+    if not path.is_dir():
+        return False
+    if is_ros2_folder(path):
+        return True
+    if not is_rpg_folder(path):
+        return False
+    names = {p.name.lower() for p in path.iterdir()}
+    return not names & {"blurry", "blur", "blurred", "exposure_start.txt", "exposure_end.txt"}
+
+
+def _folder_format(path: Path) -> str:
+    """A folder that is a recording (ROS 2 bag, RPG layout); anything else is bad input."""
+    if is_ros2_folder(path):
+        return "rosbag2"
+    if is_recording_folder(path):
+        return "rpg"
+    stores = [p for p in path.iterdir() if p.suffix.lower() in (".db3", ".mcap")]
+    if stores:
+        raise InputError("looks like a ROS 2 bag folder but holds no metadata.yaml", path=path,
+                         hint=f"give the storage file itself ({stores[0].name}), or copy the "
+                              "bag again")
+    raise InputError("is a folder, expected an event file", path=path,
+                     hint="give the event file inside it")
 
 
 def _prophesee_format(path: Path, head: bytes) -> str | None:

@@ -12,11 +12,12 @@ __all__ = ["to_microseconds", "collapsed_times", "UNIT_SCALE_US"]
 UNIT_SCALE_US = {"s": 1_000_000, "ms": 1_000, "us": 1, "ns": 0.001}
 
 
-def to_microseconds(t: np.ndarray, unit: str | None) -> np.ndarray:
+def to_microseconds(t: np.ndarray, unit: str | None, first: int = 0) -> np.ndarray:
     """Convert times to int64 µs. ``unit=None``: integers are µs, floats are seconds.
 
     Float seconds are converted relative to nothing (absolute): float64 resolves ~0.24 µs at
-    1.6e9 s, so epoch-based timestamps survive to the microsecond.
+    1.6e9 s, so epoch-based timestamps survive to the microsecond. ``first``: the file's index
+    of ``t[0]``, for messages.
     """
     t = np.asarray(t)
     if unit is None:
@@ -28,7 +29,7 @@ def to_microseconds(t: np.ndarray, unit: str | None) -> np.ndarray:
                          hint="store times as integer microseconds or float seconds")
     if t.dtype.kind == "f" and len(t) and not np.isfinite(t).all():
         bad = int(np.flatnonzero(~np.isfinite(t))[0])
-        raise InputError(f"event {bad} has a non-finite time ({t[bad]})",
+        raise InputError(f"event {first + bad} has a non-finite time ({t[bad]})",
                          hint="remove or repair the broken rows")
     scale = UNIT_SCALE_US[unit]
     # ±2**62 µs is ≈146 000 years: beyond it a value is a unit mistake, and int64 overflows

@@ -75,7 +75,8 @@ def pregenerate(
 
     if count < 1:
         raise InputError(f"count must be ≥ 1, got {count}")
-    out_path = check_output(out_path, overwrite)
+    out_path = check_output(out_path, overwrite,
+                            inputs=[i for i in images if isinstance(i, (str, Path))])
     kwargs = dict(dataset_kwargs, images=list(images), length=int(count))
     ds = SimulatedDataset(**kwargs)
     settings = {

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..errors import FormatError
-from ..write import atomic_path
+from ..write import write_bytes
 from .ema import WeightAverage
 
 if TYPE_CHECKING:
@@ -100,7 +100,7 @@ def save_checkpoint(path: str | Path, *, model: torch.nn.Module,
     ``model`` is the bare module (not a DDP wrapper). Weights are saved in float32 whatever
     the training precision, so resuming is exact. ``ema``: the run's weight average, if any.
     """
-    from safetensors.torch import save_file
+    from safetensors.torch import save
 
     path = Path(path)
     tensors: dict[str, torch.Tensor] = {}
@@ -119,8 +119,10 @@ def save_checkpoint(path: str | Path, *, model: torch.nn.Module,
     doc = {"format": CHECKPOINT_FORMAT, **state, "optimizer": optim_js, "rng": rng_js,
            "scaler": None if scaler is None else scaler.state_dict()}
     meta = {META_KEY: json.dumps(doc, default=_json_default)}
-    with atomic_path(path, suffix=".safetensors") as tmp:
-        save_file(tensors, str(tmp), metadata=meta)
+    # bytes, written by trmd's own atomic writer: safetensors' save_file writes a temporary
+    # of its own (.tmpXXXXXX) beside the file, which a kill -9 would leave behind
+    data = save(tensors, metadata=meta)
+    write_bytes(path, data)
     return path
 
 

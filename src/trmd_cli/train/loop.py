@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import os
 import random
+import re
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -78,6 +79,8 @@ __all__ = ["train", "TrainResult", "Reporter", "lr_at", "evaluate", "forward", "
 #: every file a run writes into its folder
 RUN_FILES = (CHECKPOINT, "log.csv", "curve.png", "best.safetensors", "final.safetensors",
              "recipe.json")
+#: the temporary file safetensors' save_file makes beside its target (Rust tempfile)
+_SAFETENSORS_TEMP = re.compile(r"\.tmp[A-Za-z0-9]{6}")
 
 
 class Reporter(Protocol):
@@ -423,6 +426,11 @@ def _prepare_run_dir(run_dir: Path, fresh: bool) -> None:
     for name in RUN_FILES:  # temporaries of a process killed (-9) while writing
         stem = Path(name).stem
         for tmp in run_dir.glob(f".{stem}.*.tmp*"):
+            tmp.unlink(missing_ok=True)
+    # what safetensors' own save_file left when killed (-9) inside it (trmd before checkpoints
+    # were written as bytes by trmd's atomic writer): ".tmp" and six letters or digits
+    for tmp in run_dir.glob(".tmp*"):
+        if _SAFETENSORS_TEMP.fullmatch(tmp.name) and tmp.is_file():
             tmp.unlink(missing_ok=True)
 
 
