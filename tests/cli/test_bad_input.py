@@ -23,6 +23,7 @@ import pytest
 from typer.testing import CliRunner
 
 from tests.helpers.camera import dat_bytes, evt2_bytes, good, stream
+from tests.helpers.cli import assert_one_error_line
 from tests.helpers.data import SHARED
 from trmd_cli.cli.app import app
 from trmd_cli.errors import FormatError, InputError, TrmdError
@@ -497,19 +498,7 @@ def invoke(command: str, path: Path, out_dir: Path, extra: tuple[str, ...], prev
     return runner.invoke(app, args), out
 
 
-def assert_one_clear_line(result, names: str, needle: str) -> str:
-    """Exit 2; stderr ends with the one error line (only warnings may precede it); the line
-    names the file and says how to fix it; no traceback anywhere."""
-    assert result.exit_code == 2, (result.exit_code, result.output, result.exception)
-    assert "Traceback" not in result.output and "Traceback" not in result.stderr
-    lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
-    assert lines and lines[-1].startswith("error: "), result.stderr
-    assert all(ln.startswith("warning: ") for ln in lines[:-1]), result.stderr
-    line = lines[-1]
-    assert names in line, line
-    assert " — " in line, f"no hint: {line}"
-    assert re.search(needle, line), line
-    return line
+assert_one_clear_line = assert_one_error_line
 
 
 def assert_output_untouched(out: Path | None, previous: bool) -> None:

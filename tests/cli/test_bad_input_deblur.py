@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import pickle
-import re
 import struct
 import subprocess
 import sys
@@ -28,6 +27,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from tests.helpers.cli import assert_one_error_line
 from trmd_cli.cli.app import app
 from trmd_cli.events import Exposure, make_stream
 from trmd_cli.write import write_events_npz, write_h5, write_image
@@ -465,17 +465,8 @@ def output_args(command: str, out_dir: Path, variant: int, previous: bool
 
 
 def assert_one_clear_line(result, names: str, needle: str) -> str:
-    """Exit 2; stderr ends with the one error line (only warnings before it); the line names
-    the file or option and says how to fix it; no traceback anywhere."""
-    assert result.exit_code == 2, (result.exit_code, result.output, result.exception)
-    assert "Traceback" not in result.output and "Traceback" not in result.stderr
-    lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
-    assert lines and lines[-1].startswith("error: "), result.stderr
-    assert all(ln.startswith("warning: ") for ln in lines[:-1]), result.stderr
-    line = lines[-1]
-    assert names in line, (names, line)
-    assert " — " in line, f"no hint: {line}"
-    assert re.search(needle, line), (needle, line)
+    """The one error line, and no weights file was ever unpickled."""
+    line = assert_one_error_line(result, names, needle)
     assert "unpickled!" not in result.output
     return line
 
