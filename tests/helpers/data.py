@@ -43,3 +43,18 @@ def shifted(img: np.ndarray, dx: float) -> np.ndarray:
     m = np.array([[1, 0, dx], [0, 1, 0]], np.float32)
     return cv2.warpAffine(img, m, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_REFLECT101)
+
+
+def random_events(rng, n=3000, width=64, height=48, t0=1_000, span=5_000_000):
+    """(t µs sorted, x, y, p ±1) of ``n`` random events on a ``width``×``height`` sensor."""
+    t = np.sort(rng.integers(t0, t0 + span, n)).astype(np.int64)
+    return (t, rng.integers(0, width, n), rng.integers(0, height, n),
+            np.where(rng.integers(0, 2, n) == 1, 1, -1))
+
+
+def assert_events(stream, t, x, y, p) -> None:
+    """``stream`` holds exactly these events (t in µs)."""
+    np.testing.assert_array_equal(stream.t, t)
+    np.testing.assert_array_equal(stream.x, x)
+    np.testing.assert_array_equal(stream.y, y)
+    np.testing.assert_array_equal(stream.p, p)

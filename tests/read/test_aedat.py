@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 
 from tests.helpers import aedat as A
 from tests.helpers.cli import assert_one_error_line
+from tests.helpers.data import assert_events, random_events
 from trmd_cli.cli.app import app
 from trmd_cli.errors import FormatError, InputError
 from trmd_cli.events import Exposure
@@ -23,16 +24,7 @@ runner = CliRunner()
 
 
 def events(rng, n, width, height, t0=1_000, span=200_000):
-    t = np.sort(rng.integers(t0, t0 + span, n)).astype(np.int64)
-    return (t, rng.integers(0, width, n), rng.integers(0, height, n),
-            np.where(rng.integers(0, 2, n) == 1, 1, -1))
-
-
-def assert_events(stream, t, x, y, p) -> None:
-    np.testing.assert_array_equal(stream.t, t)
-    np.testing.assert_array_equal(stream.x, x)
-    np.testing.assert_array_equal(stream.y, y)
-    np.testing.assert_array_equal(stream.p, p)
+    return random_events(rng, n, width, height, t0, span)
 
 
 @pytest.fixture

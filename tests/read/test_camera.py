@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from tests.helpers.data import SHARED, needs_shared
+from tests.helpers.data import SHARED, assert_events, needs_shared, random_events
 from trmd_cli.errors import FormatError, InputError
 from trmd_cli.events import Exposure, make_stream
 from trmd_cli.read import ReadOptions, detect_format, open_events
@@ -53,19 +53,6 @@ def write_dat(path: Path, t, x, y, p, width=64, height=48, ev_type=0x0C, ev_size
                                 int(xi) | (int(yi) << 14) | ((1 if pi > 0 else 0) << 28))
                     for ti, xi, yi, pi in zip(t, x, y, p, strict=True))
     path.write_bytes(header.encode() + bytes([ev_type, ev_size]) + body)
-
-
-def random_events(rng, n=3000, width=64, height=48, t0=1_000, span=5_000_000):
-    t = np.sort(rng.integers(t0, t0 + span, n)).astype(np.int64)
-    return (t, rng.integers(0, width, n), rng.integers(0, height, n),
-            np.where(rng.integers(0, 2, n) == 1, 1, -1))
-
-
-def assert_events(stream, t, x, y, p) -> None:
-    np.testing.assert_array_equal(stream.t, t)
-    np.testing.assert_array_equal(stream.x, x)
-    np.testing.assert_array_equal(stream.y, y)
-    np.testing.assert_array_equal(stream.p, p)
 
 
 @pytest.fixture

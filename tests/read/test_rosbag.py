@@ -13,6 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from tests.helpers.cli import assert_one_error_line
+from tests.helpers.data import assert_events as assert_events_us
 from tests.helpers.rosbag import BagBuilder, split
 from trmd_cli.cli.app import app
 from trmd_cli.errors import FormatError, InputError
@@ -65,10 +66,7 @@ def davis_bag(kind: str, rng, *, exposure=True, frames=3, per_message=400, image
 
 
 def assert_events(stream, t_ns, x, y, p) -> None:
-    np.testing.assert_array_equal(stream.t, t_ns // 1000)
-    np.testing.assert_array_equal(stream.x, x)
-    np.testing.assert_array_equal(stream.y, y)
-    np.testing.assert_array_equal(stream.p, p)
+    assert_events_us(stream, t_ns // 1000, x, y, p)
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -11,6 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from tests.helpers.cli import assert_one_error_line
+from tests.helpers.data import assert_events
 from trmd_cli.cli.app import app
 from trmd_cli.errors import FormatError, InputError
 from trmd_cli.events import Exposure
@@ -51,13 +52,6 @@ def rpg_folder(root: Path, rng, n=2000, frames=3, decimals=9, phase=123, name="s
     (d / "images.txt").write_text("".join(lines))
     (d / "imu.txt").write_text("0.0 0 0 0 0 0 0\n")
     return d, (t_ns, x, y, np.where(p == 1, 1, -1)), stamps, images
-
-
-def assert_events(stream, t_us, x, y, p) -> None:
-    np.testing.assert_array_equal(stream.t, t_us)
-    np.testing.assert_array_equal(stream.x, x)
-    np.testing.assert_array_equal(stream.y, y)
-    np.testing.assert_array_equal(stream.p, p)
 
 
 @pytest.mark.parametrize("decimals", [9, 6, 3])
