@@ -405,8 +405,9 @@ class MotionMethod:
             np.asarray(instants_us, np.float64)
         prep = self.prepare(b, events, exposure)
         fr = (inst - exposure.start_us) / exposure.duration_us
-        edi = prep.model.latent(b, fr, prep.contrast)
-        mid = prep.model.latent(b, np.array([0.5]), prep.contrast)[0]
+        # EDI at the instants and at mid-exposure in one pass (one blur integral, not two)
+        lat = prep.model.latent(b, np.append(fr, 0.5), prep.contrast)
+        edi, mid = lat[:-1], lat[-1]
         res = motion_deblur(b, events, exposure, fr, edi, mid, prep.hot)
         return Estimate(res.frames, inst, prep.contrast, prep.estimated, prep.reliable,
                         prep.hot_pixels, prep.note, res.notes)
