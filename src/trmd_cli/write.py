@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import InputError, OutputExistsError, TrmdError, WriteError
+from .signals import deferred, raise_if_received
 
 if TYPE_CHECKING:
     from .deblur import FrameResult
@@ -228,7 +229,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     suffix = path.suffix if suffix is None else suffix
     tmp_path: Path | None = None
     try:
-        with _signals_deferred():  # a Ctrl-C right after creation must still find the name
+        with deferred():  # a Ctrl-C right after creation must still find the name
             try:
                 fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=f".tmp{suffix}",
                                            dir=path.parent)
@@ -238,6 +239,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
             os.close(fd)
             os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs look ordinary
         yield tmp_path
+        raise_if_received()  # an interrupt something swallowed must still stop the commit
         os.replace(tmp_path, path)
     except BaseException as e:
         if tmp_path is not None:
@@ -272,7 +274,7 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     path = Path(path)
     tmp: Path | None = None
     try:
-        with _signals_deferred():
+        with deferred():
             try:
                 tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=".tmp",
                                             dir=path.parent))
@@ -281,6 +283,7 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
             # mkdtemp makes it private (0700); the finished folder is the user's, as mkdir's
             os.chmod(tmp, 0o777 & ~_UMASK)
         yield tmp
+        raise_if_received()
         if path.exists():
             old = path.with_name(f"{_temp_prefix(path)}old.tmp")
             os.replace(path, old)
@@ -307,25 +310,6 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
         if failure is not None:
             raise failure from None
         raise
-
-
-@contextlib.contextmanager
-def _signals_deferred() -> Iterator[None]:
-    """Hold SIGINT/SIGTERM while a temporary file is created and named: Python runs the handler
-    (KeyboardInterrupt) at the first bytecode after unblocking, i.e. inside the cleanup's try."""
-    import signal
-    import threading
-
-    mask = getattr(signal, "pthread_sigmask", None)
-    if mask is None or threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    sigs = {signal.SIGINT, signal.SIGTERM}
-    old = mask(signal.SIG_BLOCK, sigs)
-    try:
-        yield
-    finally:
-        mask(signal.SIG_SETMASK, old)
 
 
 class _OutputFile(io.RawIOBase):
@@ -403,6 +387,11 @@ def open_output(path: str | Path, text: bool = False):
     """A file object writing ``path`` (a temporary from :func:`atomic_path`) through
     :class:`_OutputFile`: binary, buffered; ``text=True``: UTF-8 text."""
     binary = io.BufferedWriter(_OutputFile(path), buffer_size=1 << 20)
+    try:
+        raise_if_received()  # BufferedWriter() calls raw.tell() and clears what it raised
+    except BaseException:
+        binary.close()
+        raise
     return io.TextIOWrapper(binary, encoding="utf-8") if text else binary
 
 

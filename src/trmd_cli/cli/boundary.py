@@ -22,6 +22,7 @@ import typer
 from rich.console import Console
 
 from ..errors import TrmdError
+from ..signals import Terminated, handled, raise_if_received
 
 F = TypeVar("F", bound=Callable)
 
@@ -113,14 +114,6 @@ def fail(message: str, code: int) -> typer.Exit:
     return typer.Exit(code)
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread so ``with`` blocks (atomic writers) clean up."""
-
-
-def _on_sigterm(signum, frame) -> None:
-    raise Terminated()
-
-
 def _unraisable(hook) -> None:
     """An interrupt that lands inside a finaliser or weakref callback would be printed as
     "Exception ignored in …" and lost; hand it back to the main thread instead."""
@@ -143,12 +136,9 @@ def guarded(fn: F) -> F:
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        # Python's default for SIGTERM is to die on the spot, skipping every cleanup
-        main = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGTERM, _on_sigterm) if main else None
         previous_hook, sys.unraisablehook = sys.unraisablehook, _unraisable
         try:
-            with warnings.catch_warnings():
+            with handled(), warnings.catch_warnings():
                 if not state["verbose"]:
                     # library warnings (numpy casts, h5py) would break the one-line promise;
                     # what users need to know is said by warn()
@@ -156,8 +146,6 @@ def guarded(fn: F) -> F:
                 return _run(fn, args, kwargs)
         finally:
             sys.unraisablehook = previous_hook
-            if main:
-                signal.signal(signal.SIGTERM, previous)
 
     return wrapper  # type: ignore[return-value]
 
@@ -165,7 +153,9 @@ def guarded(fn: F) -> F:
 def _run(fn: Callable, args, kwargs):
     """Call the command; turn every failure into one line on stderr and an exit code."""
     try:
-        return fn(*args, **kwargs)
+        result = fn(*args, **kwargs)
+        raise_if_received()  # swallowed on the way (see trmd_cli.signals): still an interrupt
+        return result
     except (typer.Exit, typer.Abort):
         raise
     except typer.BadParameter as e:  # raised inside a command body: bad input, exit 2

@@ -1,0 +1,80 @@
+"""Ctrl-C and ``kill`` as exceptions that cannot be lost on the way to the writers.
+
+Python turns SIGINT into :class:`KeyboardInterrupt` at whatever bytecode runs next. A few places
+in the standard library and in C extensions call Python code and then *clear* any exception it
+raised: ``io.BufferedWriter(raw)`` asks ``raw.tell()`` and drops its error, IOBase finalisers drop
+the errors of ``close()``. An interrupt landing there vanishes and the run would finish and
+commit its output as if nothing had happened.
+
+So while :func:`handled` is active, the handlers also *record* the signal, and
+:func:`raise_if_received` raises it again at the points that matter: before a writer commits an
+output (:mod:`trmd_cli.write` calls it before every rename) and after the known swallowing
+calls. Outside :func:`handled` (the package used as a library) Python's defaults are untouched.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
+
+__all__ = ["Terminated", "handled", "raise_if_received", "deferred"]
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so ``with`` blocks (atomic writers) clean up."""
+
+
+#: the first signal received while :func:`handled` is active (empty: none yet)
+_received: list[int] = []
+
+
+def _exception(signum: int) -> KeyboardInterrupt:
+    return Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+def _on_signal(signum, frame) -> None:
+    if not _received:
+        _received.append(signum)
+    raise _exception(signum)
+
+
+def raise_if_received() -> None:
+    """Raise the interrupt received earlier (if any), even if something swallowed it then."""
+    if _received:
+        raise _exception(_received[0])
+
+
+@contextlib.contextmanager
+def handled() -> Iterator[None]:
+    """Install the recording handlers for SIGINT and SIGTERM (main thread only; elsewhere a
+    no-op). Python's default for SIGTERM is to die on the spot, skipping every cleanup; here it
+    raises :class:`Terminated` instead."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _received.clear()
+    previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        _received.clear()
+
+
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """Hold SIGINT/SIGTERM while a temporary file is created and named: Python runs the handler
+    (KeyboardInterrupt) at the first bytecode after unblocking, i.e. inside the cleanup's try."""
+    mask = getattr(signal, "pthread_sigmask", None)
+    if mask is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    old = mask(signal.SIG_BLOCK, sigs)
+    try:
+        yield
+    finally:
+        mask(signal.SIG_SETMASK, old)
