@@ -220,6 +220,10 @@ class RENet(nn.Module):
         """PyTorch defaults, except a near-zero head: training starts from R ≈ 0, i.e. every
         latent frame ≈ B, instead of random residuals — or, with the EDI prior, from EDI's
         residuals at the second contrast of the ladder (an identity from those inputs)."""
+        if self.head.weight.is_meta:
+            # shapes only (a weights file checked before it is built): no values to set, and
+            # torch's first normal_ on the meta device costs seconds of lazy set-up
+            return
         nn.init.normal_(self.head.weight, std=1e-3)
         nn.init.zeros_(self.head.bias)
         if isinstance(self.refine, Refinement):
