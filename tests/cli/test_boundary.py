@@ -52,3 +52,21 @@ def test_library_error_reaches_the_terminal_as_flags(tmp_path):
     assert r.exit_code == 2
     assert "`" not in r.stderr.replace("`trmd", "")
     assert "--sensor" in r.stderr or "--columns" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("given,expected", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
+def test_openmp_threads_sleep_unless_the_user_says(given, expected):
+    """Spinning OpenMP threads collapse beside a competing process (bench/bench_load.py): the
+    CLI picks the passive wait policy before torch loads, and keeps a value the user set."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if given is not None:
+        env["OMP_WAIT_POLICY"] = given
+    code = ("import os, sys, trmd_cli.cli.app; "
+            "print(os.environ['OMP_WAIT_POLICY'], 'torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == [expected, "False"]
