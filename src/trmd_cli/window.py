@@ -22,7 +22,7 @@ import numpy as np
 
 from .errors import InputError
 from .events import Exposure
-from .read.units import UNIT_SCALE_US
+from .units import UNIT_SCALE_US
 
 __all__ = ["WindowPlan", "resolve_windows", "exposure_from_user", "check_in_range"]
 

@@ -13,7 +13,7 @@ from tests.helpers.data import random_stream
 from trmd_cli.errors import FormatError, InputError
 from trmd_cli.events import Exposure, make_stream
 from trmd_cli.read import ReadOptions, detect_format, open_events
-from trmd_cli.read.units import to_microseconds
+from trmd_cli.units import to_microseconds
 from trmd_cli.write import write_events_npz, write_events_text, write_h5
 
 

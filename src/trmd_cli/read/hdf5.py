@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..events import EventStream, Exposure, make_stream
 from .base import Frame, ReadOptions, Recording
-from .units import to_microseconds
+from ..units import to_microseconds
 
 __all__ = ["read_hdf5", "HDF5Recording"]
 

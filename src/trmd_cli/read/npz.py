@@ -31,7 +31,7 @@ from ..errors import FormatError, InputError, TrmdError
 from ..events import Exposure, make_stream
 from .base import MemoryRecording, ReadOptions
 from .chunked import Chunk, ChunkedRecording
-from .units import to_microseconds
+from ..units import to_microseconds
 
 __all__ = ["read_npz", "read_npy"]
 

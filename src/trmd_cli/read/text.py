@@ -32,7 +32,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..events import make_stream
 from .chunked import Chunk, ChunkedRecording
-from .units import to_microseconds
+from ..units import to_microseconds
 
 __all__ = ["read_text", "parse_text_events", "TextRecording", "TEXT_BLOCK_BYTES"]
 
