@@ -237,6 +237,23 @@ def _steps(to: np.ndarray, start, period: int) -> np.ndarray:
     return np.where(d < -(period >> 1), d + period, d)
 
 
+def _big_steps(raw: np.ndarray, before: int, period: int, jump: int) -> np.ndarray:
+    """Indices ``i`` where the step ``raw[i-1] → raw[i]`` (``before → raw[0]`` for i = 0), read
+    as the unwrapping reads it (:func:`_steps`), is larger than ``jump`` either way.
+
+    Unwrapping only changes steps back by more than half the period, which ``jump`` (far below
+    it) already calls large: so the raw difference picks the candidates in two passes over the
+    chunk, and only those few are unwrapped.
+    """
+    d = np.empty(len(raw), np.int64)
+    d[0] = int(raw[0]) - int(before)
+    np.subtract(raw[1:], raw[:-1], out=d[1:])
+    cand = np.flatnonzero(np.abs(d) > jump)
+    if len(cand) == 0:
+        return cand
+    return cand[np.abs(_steps(d[cand], 0, period)) > jump]
+
+
 def clock_excursions(raw: np.ndarray, last: int, period: int, jump: int,
                      ahead: np.ndarray | None = None, at_end: bool = True) -> np.ndarray:
     """Which time words of ``raw`` are corrupt: bool mask.
@@ -258,6 +275,10 @@ def clock_excursions(raw: np.ndarray, last: int, period: int, jump: int,
     bad = np.zeros(n, bool)
     if n == 0:
         return bad
+    if last >= 0:
+        suspects = _big_steps(raw, last, period, jump)
+        if len(suspects) == 0:  # the usual chunk: no copy of it is needed
+            return bad
     ext = raw if ahead is None or not len(ahead) else np.concatenate([raw, ahead])
     if last < 0 and len(ext) > 2:
         # the file's first time word has nothing before it to be judged by: it is corrupt when
@@ -270,8 +291,8 @@ def clock_excursions(raw: np.ndarray, last: int, period: int, jump: int,
             if n > 1:
                 bad[1:] = clock_excursions(raw[1:], int(raw[1]), period, jump, ahead, at_end)
             return bad
-    prev = np.concatenate([[raw[0] if last < 0 else last], raw[:-1]])
-    suspects = np.flatnonzero(np.abs(_steps(raw, prev, period)) > jump)
+    if last < 0:
+        suspects = _big_steps(raw, raw[0], period, jump)
     k = 0
     while k < len(suspects):
         i = int(suspects[k])
@@ -489,23 +510,34 @@ def decode_dat_records(records: np.ndarray, state: tuple[int, int] = (-1, 0), *,
     else:
         kept_at = None
     if len(raw_t):
-        prev = np.concatenate([[last_raw if last_raw >= 0 else raw_t[0]], raw_t])
-        # uint32 µs wraps every 71.6 min: a big backward step is a wrap, a small one corruption
-        wrap = wraps + np.cumsum(np.diff(prev) < -(1 << 31))
-        t = raw_t + (wrap << 32)
-        state_after = (int(raw_t[-1]), int(wrap[-1]))
+        # uint32 µs wraps every 71.6 min: a big backward step is a wrap, a small one corruption.
+        # Wraps are rare: find them, then add 2³² from each one on (no per-event cumsum)
+        step = np.empty(len(raw_t), np.int64)
+        step[0] = raw_t[0] - (last_raw if last_raw >= 0 else raw_t[0])
+        np.subtract(raw_t[1:], raw_t[:-1], out=step[1:])
+        at_wrap = np.flatnonzero(step < -(1 << 31))
+        state_after = (int(raw_t[-1]), wraps + len(at_wrap))
+        t = raw_t  # a fresh array (astype or a selection): changed in place
+        if len(at_wrap) > 16:
+            t += (wraps + np.cumsum(step < -(1 << 31))) << 32
+        else:
+            if wraps:
+                t += wraps << 32
+            for i in at_wrap:
+                t[i:] += 1 << 32
     else:
         t, state_after = raw_t, state
-    pol = d >> 28
+    pol = (d >> 28).astype(np.uint8)
     if len(pol) and pol.max() > 1:
         i = int(np.flatnonzero(pol > 1)[0])
         at = i if kept_at is None else int(kept_at[i])
         raise FormatError(f"record {first_record + at} has polarity {int(pol[i])}, expected 0 "
                           "or 1 (corrupt file?)", path=path,
                           hint=_DAMAGED)
-    x = (d & 0x3FFF).astype(np.uint16)
-    y = ((d >> 14) & 0x3FFF).astype(np.uint16)
-    p = (pol.astype(np.int8) * 2 - 1).astype(np.int8)
+    # cast to 16 bits first: the masks then run over half the bytes
+    x = d.astype(np.uint16) & np.uint16(0x3FFF)
+    y = (d >> 14).astype(np.uint16) & np.uint16(0x3FFF)
+    p = pol.view(np.int8) * np.int8(2) - np.int8(1)
     return x, y, t, p, state_after
 
 
