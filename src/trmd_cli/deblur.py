@@ -189,12 +189,17 @@ class ContrastNotes:
         self._edge: list[tuple[str, str]] = []
 
     def add(self, result: FrameResult) -> None:
-        self.frames += 1
         est = result.estimate
-        if est.contrast_note is None:
+        self.add_note(result.name, est.contrast_note, est.contrast_reliable)
+
+    def add_note(self, name: str, note: str | None, reliable: bool) -> None:
+        """One frame's note (None: it said nothing), for frames deblurred elsewhere (another
+        process) whose :class:`FrameResult` is not here."""
+        self.frames += 1
+        if note is None:
             return
-        kind = self._fallback if not est.contrast_reliable else self._edge
-        kind.append((result.name, est.contrast_note))
+        kind = self._fallback if not reliable else self._edge
+        kind.append((name, note))
 
     def lines(self) -> list[str]:
         out = []

@@ -19,6 +19,7 @@ from typing import Annotated
 
 import typer
 
+from ..errors import TrmdError
 from .boundary import err, guarded, progress_enabled, warn
 from .options import (
     Columns,
@@ -60,6 +61,16 @@ Weights = Annotated[Path | None, typer.Option("--weights", help="TRMD weights (.
 HotPixels = Annotated[bool, typer.Option("--hot-pixels/--keep-hot-pixels",
                                          help="Ignore the events of hot pixels (default on).")]
 BitDepth = Annotated[int, typer.Option("--bit-depth", help="PNG bit depth: 8 or 16.")]
+Jobs = Annotated[int, typer.Option(
+    "--jobs", "-j", help="Worker processes on this machine, each on its share of the frames "
+    "(torch threads per worker: the cores shared out, unless --threads). Across machines, "
+    "launch the command with torchrun instead: each rank takes frames rank, rank + world, …; "
+    "rank 0 writes meta.json and the output once every rank is done.")]
+Resume = Annotated[bool, typer.Option(
+    "--resume", help="Continue an unfinished run of this output (interrupted, or a rank that "
+    "failed): the frames already complete are kept, the rest deblurred. Runs with --jobs, "
+    "torchrun, several recordings or --resume keep finished frames in .OUT.trmd-partial "
+    "beside -o until the output is swapped in whole.")]
 
 
 def parse_contrast(text: str) -> float | None:
@@ -136,12 +147,20 @@ def deblur(
     stamp: Stamp = None,
     topics: Topics = None,
     overwrite: Overwrite = False,
+    jobs: Jobs = 1,
+    resume: Resume = False,
 ) -> None:
     """Deblur: write 2N+1 sharp frames per blurry frame, plus sharp.png, timestamps.txt and
-    meta.json (method, N, c used, weights hash, inputs)."""
+    meta.json (method, N, c used, weights hash, inputs).
+
+    Several recordings (REC1 REC2 …, or a folder of .h5/.aedat4/.aedat/.bag files and
+    recording folders) go to one sub-folder each, named after the recording. The output is
+    written whole at the end; runs that share frames out (--jobs, torchrun) or may be resumed
+    keep the finished frames in .OUT.trmd-partial beside it meanwhile, so the result is the
+    same file for file as a run in one process."""
     from rich.progress import Progress
 
-    from .. import __version__
+    from ..batch import frame_folder_name, ranks_from_env, recordings_in, run_meta
     from ..deblur import ContrastNotes, binned_note, deblur_frames
     from ..errors import InputError
     from ..methods import make_method
@@ -150,7 +169,11 @@ def deblur(
     from ..write import atomic_dir, check_output, write_json, write_result_folder
 
     # every option is checked before any file is opened or written
-    if len(inputs) > 2:
+    if jobs < 1:
+        raise InputError(f"--jobs must be at least 1, got {jobs}",
+                         hint="e.g. --jobs 4 (one worker process per core)")
+    recordings = recordings_in(inputs)
+    if len(inputs) > 2 and recordings is None:
         raise InputError(f"deblur takes one or two inputs, got {len(inputs)}",
                          hint="for several images use a frames folder, or `trmd hfr`")
     config = method_config(method, weights, n, contrast, hot_pixels, device, threads,
@@ -163,6 +186,24 @@ def deblur(
         raise InputError("-o names a video, but deblur writes a folder of frames", path=output,
                          hint=f"use -o FOLDER --video {output.name}, or `trmd hfr -o "
                          f"{output.name}`")
+    ranks = ranks_from_env()
+    if jobs > 1 or resume or ranks.enabled or recordings is not None:
+        from ..batch import Settings
+
+        if video is not None:
+            raise InputError("--video needs every frame in order in one process: not with "
+                             "--jobs, --resume, torchrun or several recordings",
+                             hint="leave out --video, and make one afterwards with `trmd hfr`")
+        if ranks.enabled and jobs > 1:
+            raise InputError(f"--jobs {jobs} under torchrun (WORLD_SIZE={ranks.world})",
+                             hint="let torchrun start the processes: --nproc_per_node K")
+        opts = read_options(columns, one_based, time_unit, sensor, exposure_length, stamp,
+                            topics)
+        settings = Settings(config, opts, None if exposure is None else tuple(exposure),
+                            offset, bit_depth, compare)
+        _deblur_batch(inputs, recordings, output, settings, jobs=jobs, resume=resume,
+                      overwrite=overwrite, ranks=ranks, guard=[*inputs, weights])
+        return
     check_output(output, overwrite, inputs=[*inputs, weights])
     if output.exists() and not output.is_dir():
         raise InputError("the output exists and is not a folder", path=output,
@@ -181,21 +222,8 @@ def deblur(
         for w in ins.warnings:
             warn(w)
         est = make_method(config)
-        meta = {
-            "tool": f"trmd {__version__}",
-            "method": est.name,
-            "n": est.n,
-            "weights_hash": est.weights_hash,
-            "precision": est.precision,
-            "inputs": ins.paths,
-            "time_offset_us": offset,
-            "contrast_mode": "given" if config.contrast is not None else "auto",
-            "bit_depth": bit_depth,
-        }
+        meta = run_meta(ins, est, config, offset, bit_depth)
         said = [binned_note(ins.source, est)] if ins.binned else []
-        if ins.binned:
-            del meta["time_offset_us"]
-            meta.update(binned_meta(ins.source))
         summary: list[dict] = []
         clipped: list[float] = []
         notes = ContrastNotes()
@@ -211,7 +239,7 @@ def deblur(
                     notes.add(res)
                     folder = tmp
                     if not ins.single:
-                        folder = tmp / _folder_name(res.name, res.index)
+                        folder = tmp / frame_folder_name(res.name, res.index)
                         folder.mkdir()
                     info = write_result_folder(folder, res, bit_depth=bit_depth,
                                                compare=compare, meta=meta)
@@ -239,14 +267,112 @@ def deblur(
 
 def binned_meta(source) -> dict:
     """What meta.json says about binned events (a ``BinnedSource``): no clock, no µs."""
-    return {"binned": True, "bins_per_frame": source.bins_per_frame,
-            "time": "binned events have no event clock: instants are fractions of each "
-                    "exposure (0 = start, 1 = end)"}
+    from ..batch import binned_meta as meta
+
+    return meta(source)
 
 
-def _folder_name(name: str, index: int) -> str:
-    safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name).strip(".")
-    return safe or f"{index:06d}"
+def _deblur_batch(inputs: list[Path], recordings: list[Path] | None, output: Path, settings,
+                  *, jobs: int, resume: bool, overwrite: bool, ranks, guard: list) -> None:
+    """A run through a stage (see :mod:`trmd_cli.batch`): one recording or several, in
+    ``jobs`` local processes or as one rank of a torchrun launch, resumable."""
+    from dataclasses import replace
+
+    from rich.progress import Progress
+
+    from ..batch import (
+        Stage,
+        agreed,
+        finish,
+        joined,
+        make_plan,
+        prepare_stage,
+        run_pool,
+        run_share,
+        worker_threads,
+    )
+    from ..deblur import ContrastNotes
+    from ..errors import InputError
+    from ..write import check_output
+
+    groups = [[p] for p in recordings] if recordings is not None else [inputs]
+    folders = [p.stem if p.is_file() else p.name for p in recordings] \
+        if recordings is not None else [""]
+    main = ranks.rank == 0
+    stage = Stage(output)
+    # per process: the cores of this machine shared out among its processes
+    threads = worker_threads(jobs if not ranks.enabled else ranks.local_world,
+                             settings.config.threads)
+    settings = replace(settings, config=replace(settings.config, threads=threads))
+
+    def check() -> None:
+        if not main:
+            return
+        if resume and not stage.root.is_dir():
+            raise InputError("nothing to resume: no unfinished run of this output", path=output,
+                             hint="the output is complete already" if output.is_dir()
+                             and any(output.iterdir()) else "run it without --resume")
+        check_output(output, overwrite, inputs=guard)
+
+    def prepare() -> None:
+        if not main:
+            return
+        if stage.root.exists() and not resume:
+            left = len(plan.units()) - len(stage.pending(plan)) if stage.plan_file.is_file() \
+                else 0
+            warn(f"an unfinished run of {output} ({left} frames) is discarded; --resume would "
+                 "have continued it")
+        _, before = prepare_stage(plan, output, resume)
+        if before:
+            typer.echo(f"resuming: {before} of {len(plan.units())} frames are done already")
+
+    with joined(ranks):
+        agreed(ranks, check)
+        plan = agreed(ranks, lambda: make_plan(groups, folders, settings,
+                                               warn if main else (lambda _: None)))
+        agreed(ranks, prepare)
+        reports = []
+        try:
+            with Progress(console=err, disable=not progress_enabled() or not main,
+                          transient=True) as bar:
+                if ranks.enabled:
+                    share = plan.share(ranks.rank, ranks.world)
+                    task = bar.add_task("deblurring", total=len(share))
+                    reports = agreed(ranks, lambda: [run_share(
+                        plan, stage, share, tick=lambda: bar.advance(task))])
+                else:
+                    pending = stage.pending(plan)
+                    task = bar.add_task("deblurring", total=len(pending))
+                    if jobs > 1 and len(pending) > 1:
+                        reports = run_pool(plan, stage, pending, jobs, threads,
+                                           tick=lambda: bar.advance(task))
+                    else:
+                        reports = [run_share(plan, stage, pending,
+                                             tick=lambda: bar.advance(task))]
+        except (KeyboardInterrupt, TrmdError):
+            if main and stage.plan_file.is_file():
+                warn(f"the frames finished so far are kept in {stage.root}: rerun with "
+                     "--resume to finish")
+            raise
+        summary = agreed(ranks, lambda: finish(plan, stage, overwrite) if main else None)
+
+    notes = ContrastNotes()
+    for report in reports:
+        for w in report.warnings:
+            warn(w)
+    for _, name, note, reliable in sorted(n for r in reports for n in r.contrast_notes):
+        notes.add_note(name, note, reliable)
+    for line in notes.lines():
+        warn(line)
+    mine = sum(r.frames for r in reports)
+    if not main:
+        typer.echo(f"rank {ranks.rank}: deblurred {mine} frames; rank 0 wrote {output}")
+        return
+    clipped = [s["clipped_fraction"] for s in summary]
+    meta = plan.items[0].meta
+    _report(summary, clipped, meta["method"], meta["n"], output, None, False)
+    if len(plan.items) > 1:
+        typer.echo(f"  from {len(plan.items)} recordings, one folder each")
 
 
 def _report(summary: list[dict], clipped: list[float], method: str, n: int, output: Path,

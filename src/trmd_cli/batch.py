@@ -1,0 +1,604 @@
+"""Deblurring many frames, of one recording or many, across processes and machines, resumably.
+
+A run is a :class:`Plan`: the recordings (each an input of
+:func:`~trmd_cli.read.inputs.open_inputs`) with their frame counts and the meta.json head they
+share. Its work is the list of (recording, frame) units in order; a process of ``world`` takes
+every ``world``-th unit from its ``rank`` (:meth:`Plan.share`), so the shares are disjoint,
+deterministic and need no talking between processes while they run.
+
+Frames land in a persistent *stage* beside the output, never in the output itself
+(:class:`Stage`)::
+
+    .<OUT>.trmd-partial/
+        plan.json            what the run is; a resume with other inputs or settings is refused
+        done/<r>-<k>.json    frame k of recording r is complete: its folder name, its meta part
+        out/                 becomes OUT: one folder per frame (per recording: out/<name>/…)
+
+A frame folder is written aside and renamed into ``out/`` when complete (``atomic_dir``); its
+record in ``done/`` is written after that, so "record present and folder present" means the
+frame is complete, and a rerun with ``resume`` skips exactly those. When every unit is done,
+one process writes each recording's meta.json from the records and swaps ``out/`` in as the
+output — the output is still all-or-nothing, and equal file for file to a one-process run.
+
+Never prints: warnings travel in each :class:`ShareReport`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import shutil
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from .errors import InputError, TrmdError
+
+if TYPE_CHECKING:  # not at run time: the CLI imports this module before it knows the mode
+    from .methods import MethodConfig
+    from .read.base import ReadOptions
+
+__all__ = [
+    "Item", "Settings", "Plan", "Stage", "ShareReport", "Ranks", "ShardError", "run_meta",
+    "recordings_in", "make_plan", "prepare_stage", "run_share", "finish", "frame_folder_name",
+    "worker_threads", "ranks_from_env", "RECORDING_SUFFIXES",
+]
+
+#: file types a folder of recordings is searched for (each may hold frames and events);
+#: recording folders (RPG, ROS 2) inside it count too
+RECORDING_SUFFIXES = (".h5", ".hdf5", ".hdf", ".aedat4", ".aedat", ".bag")
+
+
+class ShardError(TrmdError):
+    """A problem met by another process of the run (a worker, another rank), as its line."""
+
+    def __init__(self, message: str, exit_code: int = 2) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What every process needs to deblur a unit, besides the plan (picklable).
+
+    Attributes:
+        config: the method. read: how to read the inputs. exposure: ``--exposure`` (file's
+            unit) or None. offset_us: exposure shift, µs. bit_depth: 8 or 16. compare: also
+            write compare.png.
+    """
+
+    config: MethodConfig
+    read: ReadOptions
+    exposure: tuple[float, float] | None = None
+    offset_us: int = 0
+    bit_depth: int = 8
+    compare: bool = False
+
+
+@dataclass(frozen=True)
+class Item:
+    """One recording of a run.
+
+    Attributes:
+        inputs: the paths given to ``open_inputs`` for it. folder: its sub-folder of the output
+            (``""``: the output itself, when the run has one recording). frames: how many.
+        meta: the head of its meta.json (and of each frame's).
+    """
+
+    inputs: tuple[str, ...]
+    folder: str
+    frames: int
+    meta: dict = field(hash=False)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The recordings of a run and how to deblur them; every process builds the same one."""
+
+    items: tuple[Item, ...]
+    settings: Settings
+
+    def units(self) -> list[tuple[int, int]]:
+        """Every (recording, frame position) of the run, in output order."""
+        return [(i, k) for i, item in enumerate(self.items) for k in range(item.frames)]
+
+    def share(self, rank: int, world: int,
+              units: Sequence[tuple[int, int]] | None = None) -> list[tuple[int, int]]:
+        """Unit u (of ``units``, default all) goes to process u mod ``world``."""
+        units = self.units() if units is None else units
+        return list(units[rank::world])
+
+    def fingerprint(self) -> dict:
+        """What must match for a resume: the inputs, frames, meta heads and every setting that
+        changes a written byte (not device or threads)."""
+        s = self.settings
+        config = {k: v for k, v in asdict(s.config).items() if k not in ("device", "threads")}
+        doc = {"items": [{"inputs": list(it.inputs), "folder": it.folder, "frames": it.frames,
+                          "meta": it.meta} for it in self.items],
+               "config": config, "read": asdict(s.read), "exposure": s.exposure,
+               "offset_us": s.offset_us, "bit_depth": s.bit_depth, "compare": s.compare}
+        return json.loads(json.dumps(doc, default=_plain))
+
+
+def _plain(o):
+    if isinstance(o, Path):
+        return str(o)
+    if hasattr(o, "item"):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def run_meta(ins, est, config: MethodConfig, offset_us: int, bit_depth: int) -> dict:
+    """The head of meta.json for a run on ``ins`` (:class:`~trmd_cli.read.inputs.Inputs`) by
+    ``est`` (a :class:`~trmd_cli.methods.Method`)."""
+    from . import __version__
+
+    meta = {
+        "tool": f"trmd {__version__}",
+        "method": est.name,
+        "n": est.n,
+        "weights_hash": est.weights_hash,
+        "precision": est.precision,
+        "inputs": ins.paths,
+        "time_offset_us": offset_us,
+        "contrast_mode": "given" if config.contrast is not None else "auto",
+        "bit_depth": bit_depth,
+    }
+    if ins.binned:
+        del meta["time_offset_us"]
+        meta.update(binned_meta(ins.source))
+    return meta
+
+
+def binned_meta(source) -> dict:
+    """What meta.json says about binned events (a ``BinnedSource``): no clock, no µs."""
+    return {"binned": True, "bins_per_frame": source.bins_per_frame,
+            "time": "binned events have no event clock: instants are fractions of each "
+                    "exposure (0 = start, 1 = end)"}
+
+
+def frame_folder_name(name: str, index: int) -> str:
+    """A frame's folder name in the output (its name made safe for any file system)."""
+    safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name).strip(".")
+    return safe or f"{index:06d}"
+
+
+def recordings_in(inputs: Sequence[Path]) -> list[Path] | None:
+    """The recordings when ``inputs`` name several (REC1 REC2 …) or a folder of them; None
+    when they are one of ``open_inputs``' layouts (a recording, BLURRY EVENTS, IMAGES_DIR …).
+
+    A folder counts as a folder of recordings when it is not a recording itself, holds no
+    image and holds files ending in :data:`RECORDING_SUFFIXES` or recording folders; they are
+    taken in name order.
+    """
+    from .read.frames import IMAGE_EXTENSIONS
+    from .read.sniff import is_recording_folder
+
+    def is_image(p: Path) -> bool:
+        return p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
+
+    if len(inputs) == 1:
+        folder = inputs[0]
+        if not folder.is_dir() or is_recording_folder(folder):
+            return None
+        entries = sorted(folder.iterdir())
+        if any(is_image(p) for p in entries):
+            return None
+        found = [p for p in entries if not p.name.startswith(".") and (
+            (p.is_file() and p.suffix.lower() in RECORDING_SUFFIXES)
+            or (p.is_dir() and is_recording_folder(p)))]
+        return found or None
+    if len(inputs) >= 2 and all(
+            (p.is_file() and not is_image(p)) or (p.is_dir() and is_recording_folder(p))
+            for p in inputs):
+        # two plain files: IMAGES_DIR-less layouts all start with an image or a frames folder
+        from .read.bins import is_bins_file
+
+        if any(is_bins_file(p) for p in inputs):
+            return None
+        return list(inputs)
+    return None
+
+
+def make_plan(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
+              settings: Settings, warn: Callable[[str], None] = lambda _: None) -> Plan:
+    """Open every recording once to count its frames and settle its meta.json head.
+
+    Args:
+        groups: the inputs of each recording (for ``open_inputs``). folders: each one's
+            sub-folder of the output (``""`` for a run on one recording).
+        warn: receives what the inputs say (each recording's reader warnings).
+    Raises:
+        InputError: one recording's inputs are one image (nothing to shard), two share a
+            folder name, or one holds no frame.
+    """
+    from .methods import make_method
+    from .read.inputs import open_inputs
+
+    if len(set(folders)) != len(folders):
+        dup = next(f for f in folders if folders.count(f) > 1)
+        raise InputError(f"two recordings would both write the folder {dup!r}",
+                         hint="rename one, or run them separately")
+    s = settings
+    est = None
+    items = []
+    for paths, folder in zip(groups, folders, strict=True):
+        with open_inputs(list(paths), s.read, exposure=s.exposure, offset_us=s.offset_us) as ins:
+            for w in ins.warnings:
+                warn(w)
+            if ins.single:
+                raise InputError("one blurry image is one frame: there is nothing to share "
+                                 "out or resume", path=paths[0],
+                                 hint="run it without --jobs / --resume / torchrun")
+            if len(ins.source) == 0:
+                raise InputError("no frame to deblur", path=paths[0], hint="check the inputs")
+            est = est or make_method(s.config)  # its name, N, weights hash, precision
+            items.append(Item(tuple(str(p) for p in paths), folder, len(ins.source),
+                              run_meta(ins, est, s.config, s.offset_us, s.bit_depth)))
+    return Plan(tuple(items), settings)
+
+
+class Stage:
+    """The persistent place of a run's finished frames, beside the output (see the module)."""
+
+    def __init__(self, output: str | Path) -> None:
+        self.output = Path(output)
+        self.root = self.output.with_name(f".{self.output.name}.trmd-partial")
+        self.out = self.root / "out"
+        self.done = self.root / "done"
+        self.plan_file = self.root / "plan.json"
+
+    def record(self, unit: tuple[int, int]) -> Path:
+        return self.done / f"{unit[0]}-{unit[1]}.json"
+
+    def folder(self, plan: Plan, unit: tuple[int, int]) -> Path:
+        return self.out / plan.items[unit[0]].folder
+
+    def finished(self, plan: Plan, unit: tuple[int, int]) -> dict | None:
+        """The record of a complete unit (its folder and meta part), or None."""
+        try:
+            rec = json.loads(self.record(unit).read_text())
+        except (OSError, ValueError):
+            return None
+        if not isinstance(rec, dict) or not (self.folder(plan, unit) / str(rec.get("folder"))
+                                             ).is_dir():
+            return None
+        return rec
+
+    def pending(self, plan: Plan) -> list[tuple[int, int]]:
+        """The units not complete yet, in order."""
+        return [u for u in plan.units() if self.finished(plan, u) is None]
+
+
+def prepare_stage(plan: Plan, output: str | Path, resume: bool) -> tuple[Stage, int]:
+    """Make the stage of a new run, or check the one a resumed run continues.
+
+    Returns:
+        the stage and how many frames a previous run left there (0 without ``resume``; an
+        unfinished run's stage is then discarded: the caller says so beforehand).
+    Raises:
+        InputError: ``resume`` without an unfinished run, or with one of other inputs or
+            settings.
+    """
+    from .write import write_json
+
+    stage = Stage(output)
+    if resume:
+        if not stage.root.is_dir():
+            done = Path(output).is_dir() and any(Path(output).iterdir())
+            raise InputError("nothing to resume: no unfinished run of this output",
+                             path=output, hint="the output is complete already" if done
+                             else "run it without --resume")
+        try:
+            previous = json.loads(stage.plan_file.read_text())
+        except (OSError, ValueError):
+            previous = None
+        if previous != plan.fingerprint():
+            raise InputError("the unfinished run of this output was made from other inputs or "
+                             "settings", path=output, hint="resume with the same inputs and "
+                             "options, or rerun without --resume to start again")
+        return stage, len(plan.units()) - len(stage.pending(plan))
+    if stage.root.exists():
+        shutil.rmtree(stage.root)
+    stage.done.mkdir(parents=True)
+    for item in plan.items:
+        (stage.out / item.folder).mkdir(parents=True, exist_ok=True)
+    write_json(stage.plan_file, plan.fingerprint())  # last: the stage is then usable
+    return stage, 0
+
+
+@dataclass(frozen=True)
+class ShareReport:
+    """What one process's share said.
+
+    Attributes:
+        frames: frames written. warnings: per-frame messages for the user.
+        contrast_notes: ((recording, frame), frame name, note or None, reliable) of every
+            frame written, for ``ContrastNotes`` (in output order once sorted).
+    """
+
+    frames: int = 0
+    warnings: tuple[str, ...] = ()
+    contrast_notes: tuple[tuple[tuple[int, int], str, str | None, bool], ...] = ()
+
+
+def run_share(plan: Plan, stage: Stage, share: Sequence[tuple[int, int]],
+              tick: Callable[[], None] = lambda: None) -> ShareReport:
+    """Deblur the units of ``share`` that are not complete yet, each frame folder renamed into
+    the stage when complete, then its record written.
+
+    Args:
+        tick: called after every frame (progress).
+    """
+    from .deblur import deblur_frames
+    from .methods import make_method
+    from .read.inputs import open_inputs
+    from .write import atomic_dir, write_json, write_result_folder
+
+    s = plan.settings
+    todo = [u for u in share if stage.finished(plan, u) is None]
+    warnings: list[str] = []
+    notes: list[tuple[tuple[int, int], str, str | None, bool]] = []
+    est = None
+    written = 0
+    for i, item in enumerate(plan.items):
+        positions = [k for (r, k) in todo if r == i]
+        if not positions:
+            continue
+        est = est or make_method(s.config)
+        with open_inputs(list(item.inputs), s.read, exposure=s.exposure,
+                         offset_us=s.offset_us) as ins:
+            if len(ins.source) != item.frames:
+                raise InputError(f"the input now holds {len(ins.source)} frames, not "
+                                 f"{item.frames}", path=item.inputs[0],
+                                 hint="was it changed during the run?")
+            for k, res in zip(positions, deblur_frames(ins.source.subset(positions), est),
+                              strict=True):
+                warnings.extend(res.warnings)
+                notes.append(((i, k), res.name, res.estimate.contrast_note,
+                              bool(res.estimate.contrast_reliable)))
+                name = frame_folder_name(res.name, res.index)
+                with atomic_dir(stage.out / item.folder / name) as tmp:
+                    info = write_result_folder(tmp, res, bit_depth=s.bit_depth,
+                                               compare=s.compare, meta=item.meta)
+                write_json(stage.record((i, k)), {"folder": name, "info": info})
+                written += 1
+                tick()
+    return ShareReport(written, tuple(warnings), tuple(notes))
+
+
+#: what atomic writers name their temporaries (see trmd_cli.write): left by killed processes
+_TEMP = re.compile(r"^\..*\.trmd-\d+-.*\.tmp")
+
+
+def finish(plan: Plan, stage: Stage, overwrite: bool) -> list[dict]:
+    """Write each recording's meta.json from the records and swap the stage in as the output.
+
+    Returns:
+        every frame's meta part, in output order.
+    Raises:
+        ShardError: a unit is not complete (a process did not finish its share).
+    """
+    from .signals import deferred, raise_if_received
+    from .write import write_json
+
+    summary: list[dict] = []
+    for i, item in enumerate(plan.items):
+        infos = []
+        for k in range(item.frames):
+            rec = stage.finished(plan, (i, k))
+            if rec is None:
+                raise ShardError(f"frame {k} of {item.inputs[0]} was not written; rerun with "
+                                 "--resume to finish it")
+            infos.append(rec["info"])
+        folder = stage.out / item.folder
+        for p in folder.iterdir():  # temporaries of killed processes must not ship
+            if _TEMP.match(p.name):
+                shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+        write_json(folder / "meta.json", {**item.meta, "frames": infos})
+        summary.extend(infos)
+    output = stage.output
+    raise_if_received()
+    with deferred():  # between the renames an interrupt would leave no output at all
+        if output.exists():
+            old = output.with_name(f".{output.name}.trmd-{os.getpid()}-old.tmp")
+            os.replace(output, old)
+            try:
+                os.replace(stage.out, output)
+            except BaseException:
+                os.replace(old, output)
+                raise
+            shutil.rmtree(old) if old.is_dir() else old.unlink()
+        else:
+            os.replace(stage.out, output)
+    shutil.rmtree(stage.root, ignore_errors=True)
+    return summary
+
+
+def worker_threads(jobs: int, threads: int | None, cores: int | None = None) -> int:
+    """Torch / BLAS threads per process: ``threads`` if given, else the cores shared out so
+    that ``jobs`` × threads ≤ cores (at least 1)."""
+    if threads is not None:
+        return threads
+    cores = cores if cores is not None else len(os.sched_getaffinity(0)) \
+        if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, cores // max(jobs, 1))
+
+
+# --------------------------------------------------------------------------------------------
+# Processes of one run: local workers (`jobs`) and torchrun ranks
+
+
+@dataclass(frozen=True)
+class Ranks:
+    """This process's place in a torchrun launch: ``rank`` of ``world``; ``local_world``
+    processes on this machine."""
+
+    rank: int = 0
+    world: int = 1
+    local_world: int = 1
+
+    @property
+    def enabled(self) -> bool:
+        return self.world > 1
+
+
+def ranks_from_env(environ: dict[str, str] | None = None) -> Ranks:
+    """RANK / WORLD_SIZE / LOCAL_WORLD_SIZE as torchrun sets them (absent: one process).
+
+    Raises:
+        InputError: a value that is not an integer, or a rank outside 0..world-1.
+    """
+    env = os.environ if environ is None else environ
+
+    def read(name: str, default: int) -> int:
+        text = env.get(name)
+        if text is None or text == "":
+            return default
+        try:
+            return int(text)
+        except ValueError:
+            raise InputError(f"environment variable {name}={text!r} is not an integer") from None
+
+    world = read("WORLD_SIZE", 1)
+    rank = read("RANK", 0)
+    if world < 1 or not 0 <= rank < world:
+        raise InputError(f"RANK={rank} with WORLD_SIZE={world}: the rank must be in "
+                         f"0..{max(world - 1, 0)}", hint="launch it with torchrun")
+    return Ranks(rank, world, max(1, read("LOCAL_WORLD_SIZE", world)))
+
+
+@contextlib.contextmanager
+def joined(ranks: Ranks):
+    """The process group of a torchrun launch (gloo: the ranks only exchange small objects),
+    left on the way out. Its timeout is long: ranks wait at the end for the slowest share,
+    which on a long recording takes hours."""
+    if not ranks.enabled:
+        yield
+        return
+    from datetime import timedelta
+
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        dist.init_process_group("gloo", rank=ranks.rank, world_size=ranks.world,
+                                timeout=timedelta(days=7))
+    try:
+        yield
+    finally:
+        dist.destroy_process_group()
+
+
+def agreed(ranks: Ranks, step: Callable[[], object]):
+    """Run ``step`` on every rank and wait for all: when it failed on any, fail on every one
+    (a rank left waiting for a failed one would hang). Returns ``step``'s result."""
+    if not ranks.enabled:
+        return step()
+    import torch.distributed as dist
+
+    result, failure, own = None, None, None
+    try:
+        result = step()
+    except TrmdError as e:
+        failure, own = (str(e), e.exit_code), e
+    except BaseException as e:  # an interrupt or a bug still lets the others stop
+        failure, own = (f"{type(e).__name__}: {e}", 1), e
+    said: list = [None] * ranks.world
+    dist.all_gather_object(said, failure)
+    if own is not None:
+        raise own
+    for r, f in enumerate(said):
+        if f is not None:
+            raise ShardError(f"rank {r}: {f[0]}", f[1])
+    return result
+
+
+#: environment variables that size the thread pools of numpy's BLAS, OpenMP and torch: set in
+#: a worker before it imports them (later is too late for some)
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _worker(plan: Plan, output: str, share: list[tuple[int, int]], threads: int,
+            queue) -> None:
+    """A local worker process: its share, then one message ("done", report) or ("error",
+    line, exit code); a ("tick",) after every frame."""
+    import signal
+
+    from .signals import handled
+
+    try:
+        with handled():
+            # Ctrl-C reaches the whole terminal's process group: the parent alone answers it
+            # and stops the workers with SIGTERM, which unwinds their writers here
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            stage = Stage(output)
+            report = run_share(plan, stage, share, tick=lambda: queue.put(("tick",)))
+        queue.put(("done", report))
+    except TrmdError as e:
+        queue.put(("error", str(e), e.exit_code))
+    except KeyboardInterrupt:
+        queue.put(("error", "stopped", 130))
+    except BaseException as e:  # noqa: BLE001 - one line to the parent, never a traceback
+        queue.put(("error", f"unexpected {type(e).__name__}: {e}", 1))
+
+
+def run_pool(plan: Plan, stage: Stage, units: Sequence[tuple[int, int]], jobs: int,
+             threads: int, tick: Callable[[], None] = lambda: None) -> list[ShareReport]:
+    """``units`` deblurred by ``jobs`` worker processes (spawned: no state copied from this
+    one), worker w taking every jobs-th unit from w; each with ``threads`` threads.
+
+    Raises:
+        ShardError: a worker failed (its line) or died; the others are stopped first.
+        KeyboardInterrupt: on Ctrl-C / SIGTERM, once the workers are stopped.
+    """
+    import multiprocessing as mp
+    import queue as queues
+    from dataclasses import replace
+
+    ctx = mp.get_context("spawn")
+    messages = ctx.Queue()
+    plan = replace(plan, settings=replace(plan.settings, config=replace(
+        plan.settings.config, threads=threads)))
+    shares = [list(units[w::jobs]) for w in range(jobs)]
+    procs = []
+    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+    try:
+        # the children copy this environment when they start
+        os.environ.update({k: str(threads) for k in _THREAD_VARS if saved[k] is None})
+        for share in shares:
+            if share:
+                p = ctx.Process(target=_worker, args=(plan, str(stage.output), share, threads,
+                                                      messages), daemon=True)
+                p.start()
+                procs.append(p)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+    reports: list[ShareReport] = []
+    try:
+        while len(reports) < len(procs):
+            try:
+                msg = messages.get(timeout=0.5)
+            except queues.Empty:
+                dead = [p for p in procs if p.exitcode not in (None, 0)]
+                if dead:
+                    raise ShardError(f"a worker process died (exit code {dead[0].exitcode}); "
+                                     "rerun with --resume to finish", 1) from None
+                continue
+            if msg[0] == "tick":
+                tick()
+            elif msg[0] == "done":
+                reports.append(msg[1])
+            else:
+                raise ShardError(msg[1], msg[2])
+    finally:
+        for p in procs:
+            if p.is_alive():
+                p.terminate()  # SIGTERM: its writers clean up their temporaries
+        for p in procs:
+            p.join()
+    return reports
