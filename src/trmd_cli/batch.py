@@ -335,6 +335,7 @@ def run_share(plan: Plan, stage: Stage, share: Sequence[tuple[int, int]],
     """
     from .deblur import deblur_frames
     from .methods import make_method
+    from .overlap import ahead
     from .read.inputs import open_inputs
     from .write import atomic_dir, write_json, write_result_folder
 
@@ -355,7 +356,7 @@ def run_share(plan: Plan, stage: Stage, share: Sequence[tuple[int, int]],
                 raise InputError(f"the input now holds {len(ins.source)} frames, not "
                                  f"{item.frames}", path=item.inputs[0],
                                  hint="was it changed during the run?")
-            for k, res in zip(positions, deblur_frames(ins.source.subset(positions), est),
+            for k, res in zip(positions, ahead(deblur_frames(ins.source.subset(positions), est)),
                               strict=True):
                 warnings.extend(res.warnings)
                 notes.append(((i, k), res.name, res.estimate.contrast_note,

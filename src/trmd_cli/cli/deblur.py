@@ -164,6 +164,7 @@ def deblur(
     from ..deblur import ContrastNotes, binned_note, deblur_frames
     from ..errors import InputError
     from ..methods import make_method
+    from ..overlap import ahead
     from ..read.inputs import open_inputs
     from ..video import VIDEO_SUFFIXES, VideoWriter, check_video_path
     from ..write import atomic_dir, check_output, write_json, write_result_folder
@@ -233,7 +234,8 @@ def deblur(
                     console=err, disable=not progress_enabled() or ins.single,
                     transient=True) as bar:
                 task = bar.add_task("deblurring", total=len(ins.source))
-                for res in deblur_frames(ins.source, est):
+                # the next frame is deblurred while this one is written
+                for res in ahead(deblur_frames(ins.source, est)):
                     for w in res.warnings:
                         warn(w)
                     notes.add(res)

@@ -96,6 +96,7 @@ def hfr(
     from ..errors import InputError
     from ..hfr import check_time_order, hfr_stream
     from ..methods import make_method
+    from ..overlap import ahead
     from ..read.inputs import open_inputs
     from ..video import VIDEO_SUFFIXES, VideoWriter
     from ..write import (
@@ -140,7 +141,7 @@ def hfr(
                  "events, no event clock)" if ins.binned else "# file time_us kind source"]
 
         def results():
-            for res in deblur_frames(ins.source, est, per_exposure=per_exposure):
+            for res in ahead(deblur_frames(ins.source, est, per_exposure=per_exposure)):
                 for w in res.warnings:
                     warn(w)
                 contrast_notes.add(res)
