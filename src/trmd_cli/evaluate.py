@@ -20,8 +20,11 @@ used (EDI), else the data's true c, else EDI's estimate for the frame — so tha
 
 Methods: ``blurry`` (the blurry frame repeated: the floor), every method of
 :mod:`trmd_cli.methods` (``edi``: contrast estimated per frame; ``trmd``: RE-Net +
-reconstruction), and ``edi-true-c`` (EDI given the simulator's true mean contrast, when the data
-stores it: the baseline the training targets are defined against).
+reconstruction; ``motion``: deconvolution along the events' estimated motion), ``edi-true-c``
+(EDI given the simulator's true mean contrast, when the data stores it: the baseline the
+training targets are defined against) and ``motion-true-path`` (the motion method along the
+simulator's true camera path, ``frames/motion``: how much better the motion method would be
+with a perfect motion estimate; an error on sets that store no path).
 
 Library code: nothing here prints; notes (skipped methods, LPIPS) travel in the report.
 """
@@ -49,6 +52,7 @@ from .metrics import (
     sharpness,
     ssim,
 )
+from .oracle import TRUE_PATH, TruePathMethod
 from .read.base import Frame, ReadOptions
 from .read.dataset import EvalFrame, open_dataset
 from .read.folders import FrameWindow
@@ -77,14 +81,18 @@ PSNR_CAP_DB = 100.0
 _NOTES = {
     BLURRY: "the blurry frame repeated as every latent frame",
     TRUE_C: "the same EDI given the true mean contrast stored with simulated data",
+    TRUE_PATH: TruePathMethod.summary,
 }
+#: the evaluation's oracle twins: each follows the method it gives the truth to
+_TWINS = {EdiMethod.name: TRUE_C, "motion": TRUE_PATH}
 
 
 def _known() -> tuple[str, ...]:
-    """The floor, then every deblurring method, EDI followed by its true-c twin."""
+    """The floor, then every deblurring method, each followed by its oracle twin (EDI by its
+    true-c twin, motion by its true-path twin)."""
     out = [BLURRY]
     for m in DEBLUR_METHODS:
-        out += [m, TRUE_C] if m == EdiMethod.name else [m]
+        out += [m, _TWINS[m]] if m in _TWINS else [m]
     return tuple(out)
 
 
@@ -198,6 +206,10 @@ def _method_for(name: str, frame: EvalFrame, n: int, built: Mapping[str, Method]
         if frame.contrast is None:
             raise InputError(f"frame {frame.name} stores no true contrast threshold")
         return EdiMethod(n, frame.contrast, hot_pixels=True)
+    if name == TRUE_PATH:
+        if frame.motion is None:
+            raise InputError(f"frame {frame.name} stores no true camera path")
+        return TruePathMethod(n, frame.motion, hot_pixels=True)
     return built[name]
 
 
@@ -355,6 +367,12 @@ def evaluate_dataset(
                          "consistency instead")
         notes.extend(src.notes)
         skipped: dict[str, str] = {}
+        if TRUE_PATH in methods and not src.has_true_motion:
+            raise InputError(f"holds no true camera path (frames/motion), which {TRUE_PATH} "
+                             "needs", path=src.path,
+                             hint=f"drop {TRUE_PATH} from the methods, or evaluate a set that "
+                                  "`trmd simulate` made from a still image (videos, recordings "
+                                  "and older files store no path)")
         if TRUE_C in methods and not src.has_true_contrast:
             skipped[TRUE_C] = ("edi-true-c skipped: the data stores no true contrast "
                                "threshold (only simulated sets do)")

@@ -10,7 +10,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["voxel_preview", "strip", "to_rgb8"]
+__all__ = ["voxel_preview", "strip", "to_rgb8", "flow_colours", "colour_wheel", "flow_picture",
+           "weight_picture", "event_picture"]
 
 
 def to_rgb8(image: np.ndarray) -> np.ndarray:
@@ -110,4 +111,84 @@ def voxel_preview(voxels: np.ndarray, labels: Sequence[str] | None = None) -> np
         rgb[..., 2] -= pos
         rgb[..., 0] -= neg
         tiles.append(to_rgb8(rgb))
+    return strip(tiles, labels)
+
+
+def flow_colours(dx: np.ndarray, dy: np.ndarray, scale_px: float) -> np.ndarray:
+    """Displacements (pixels, +x right, +y down) as colours: the hue is the direction — 0° (red)
+    to the right, then clockwise on screen through 90° down, 180° left, 270° up — and the
+    saturation the length over ``scale_px`` (white = no motion, full colour from
+    ``scale_px`` on). Returns uint8 RGB of the inputs' shape + (3,)."""
+    import cv2
+
+    dx = np.nan_to_num(np.asarray(dx, np.float32))
+    dy = np.nan_to_num(np.asarray(dy, np.float32))
+    angle = np.degrees(np.arctan2(dy, dx)) % 360.0
+    sat = np.clip(np.hypot(dx, dy) / max(float(scale_px), 1e-6), 0.0, 1.0)
+    hsv = np.stack([angle, sat, np.ones_like(sat)], axis=-1).astype(np.float32)
+    # float HSV in OpenCV: hue in degrees [0, 360), saturation and value in [0, 1]
+    rgb = cv2.cvtColor(hsv.reshape(-1, 1, 3), cv2.COLOR_HSV2RGB).reshape(hsv.shape)
+    return (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def colour_wheel(size: int) -> np.ndarray:
+    """The legend of :func:`flow_colours`: a disc of diameter ``size`` pixels whose every point
+    has the colour of the displacement from the centre to it (the rim = the picture's scale),
+    on a dark grey square. uint8 RGB (size, size, 3)."""
+    r = (size - 1) / 2
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+    ox, oy = xx - r, yy - r
+    out = flow_colours(ox, oy, r)
+    out[np.hypot(ox, oy) > r] = 40
+    return out
+
+
+def flow_picture(displacement: np.ndarray, scale_px: float | None = None,
+                 legend: bool = True) -> np.ndarray:
+    """A flow picture of (H, W, 2) displacements in pixels (see :func:`flow_colours`), with a
+    colour-wheel legend in the bottom right corner labelled with its scale. ``scale_px``: the
+    length shown at full colour (default: the largest displacement, at least 1 px).
+    uint8 RGB (H, W, 3)."""
+    import cv2
+
+    d = np.asarray(displacement, np.float32)
+    length = np.hypot(d[..., 0], d[..., 1])
+    scale = max(float(length.max(initial=0.0)), 1.0) if scale_px is None else float(scale_px)
+    out = flow_colours(d[..., 0], d[..., 1], scale)
+    h, w = out.shape[:2]
+    size = int(min(h, w) * 0.3)
+    if not legend or size < 16:
+        return out
+    out = out.copy()
+    pad = 4
+    text = f"{scale:.1f} px"
+    fs = max(0.3, size / 160)
+    (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, fs, 1)
+    box_w, box_h = max(size, tw) + 2 * pad, size + th + base + 3 * pad
+    x0, y0 = w - box_w - pad, h - box_h - pad
+    if x0 < 0 or y0 < 0:
+        return out
+    out[y0:y0 + box_h, x0:x0 + box_w] = 40
+    wx = x0 + (box_w - size) // 2
+    out[y0 + pad:y0 + pad + size, wx:wx + size] = colour_wheel(size)
+    cv2.putText(out, text, (x0 + (box_w - tw) // 2, y0 + box_h - pad - base),
+                cv2.FONT_HERSHEY_SIMPLEX, fs, (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def weight_picture(weight: np.ndarray) -> np.ndarray:
+    """The motion method's per-pixel weight (H, W) in [0, 1] as gray: white where the
+    deconvolution is used, black where EDI is. uint8 RGB (H, W, 3)."""
+    return to_rgb8(np.asarray(weight, np.float32))
+
+
+def event_picture(votes: Sequence[np.ndarray], labels: Sequence[str] | None = None
+                  ) -> np.ndarray:
+    """Images of events (vote counts, (H, W) each) side by side on one shared scale (the 99.5th
+    percentile of the counts of all of them, ignoring empty pixels), dark events on white so
+    that sharper means crisper lines. uint8 RGB strip."""
+    vs = [np.asarray(v, np.float32) for v in votes]
+    nz = np.concatenate([v[v > 0] for v in vs]) if vs else np.zeros(0, np.float32)
+    scale = float(np.percentile(nz, 99.5)) if nz.size else 1.0
+    tiles = [1.0 - np.clip(v / max(scale, 1e-6), 0.0, 1.0) for v in vs]
     return strip(tiles, labels)

@@ -610,9 +610,14 @@ class H5Writer:
     uint16, ``events/t`` int64 µs, ``events/p`` int8 ±1; ``frames/blurry`` (K, H, W[, 3])
     float32 [0, 1]; ``frames/exposure_start``, ``frames/exposure_end`` (K,) int64 µs; optional
     ``frames/sharp`` (K, 2N+1, H, W[, 3]) float32 and ``frames/contrast`` (K,) float32 (the
-    simulator's true mean contrast threshold); ``windows/start_us``, ``windows/end_us`` (K,)
-    int64 µs: exposure windows stored without frames. Events of consecutive samples share one
-    timeline.
+    simulator's true mean contrast threshold); optional ``frames/motion`` (K, J, 3, 3) float64,
+    the simulator's true camera path over each exposure: homographies mapping a pixel of the
+    middle frame (exposure fraction ½) to where that point is at exposure fraction ``j/(J−1)``,
+    output pixels (pixel centres at integers), ``H[2, 2] = 1`` (J = 33 from ``trmd simulate``;
+    :class:`~trmd_cli.motion.SampledMotion` reads it); ``windows/start_us``, ``windows/end_us``
+    (K,) int64 µs: exposure windows stored without frames. Events of consecutive samples share
+    one timeline. Readers treat every optional dataset as optional: files without
+    ``frames/motion`` (older ones, videos, recordings) read as before.
 
     A write that fails (full disk, read-only folder) raises :class:`~trmd_cli.errors.WriteError`
     from the call that met it, and the temporary file is removed.
@@ -621,7 +626,7 @@ class H5Writer:
 
         with H5Writer("out.h5", 346, 260) as w:
             w.add_events(stream)
-            w.add_frame(blurry, Exposure(0, 10_000), sharp=gt, contrast=0.2)
+            w.add_frame(blurry, Exposure(0, 10_000), sharp=gt, contrast=0.2, motion=path)
     """
 
     def __init__(self, path: str | Path, width: int, height: int, *, compression: str | None = None,
@@ -686,15 +691,24 @@ class H5Writer:
         self._last_t = int(stream.t[-1])
 
     def add_frame(self, blurry: np.ndarray, exposure, sharp: np.ndarray | None = None,
-                  contrast: float | None = None) -> None:
+                  contrast: float | None = None, motion: np.ndarray | None = None) -> None:
+        """One frame: ``blurry`` (H, W[, 3]) [0, 1], its ``exposure`` (µs), and optionally
+        its 2N+1 ``sharp`` frames, the true ``contrast`` and the true camera path ``motion``
+        (J, 3, 3) at exposure fractions ``j/(J−1)`` (see the class docstring). What the first
+        frame has, every frame must have."""
         blurry = np.asarray(blurry, np.float32)
         if blurry.shape[:2] != (self.height, self.width):
             raise InputError(f"frame is {blurry.shape[1]}x{blurry.shape[0]}, the file's sensor "
                              f"is {self.width}x{self.height}")
+        if motion is not None:
+            motion = np.asarray(motion, np.float64)
+            if motion.ndim != 3 or motion.shape[1:] != (3, 3) or motion.shape[0] < 2:
+                raise InputError(f"the camera path has shape {motion.shape}, expected (J ≥ 2, "
+                                 "3, 3) homographies")
         with self._guard():
-            self._add_frame(blurry, exposure, sharp, contrast)
+            self._add_frame(blurry, exposure, sharp, contrast, motion)
 
-    def _add_frame(self, blurry, exposure, sharp, contrast) -> None:
+    def _add_frame(self, blurry, exposure, sharp, contrast, motion=None) -> None:
         if self._frames is None:
             g = self._f.create_group("frames")
             chunk = (1, *blurry.shape)
@@ -708,18 +722,24 @@ class H5Writer:
                                  compression=self._comp)
             if contrast is not None:
                 g.create_dataset("contrast", (0,), "f4", maxshape=(None,))
+            if motion is not None:
+                g.create_dataset("motion", (0, *motion.shape), "f8",
+                                 maxshape=(None, *motion.shape), chunks=(1, *motion.shape))
             self._frames = g
         g = self._frames
         k = g["blurry"].shape[0]
         for name, value in (("blurry", blurry), ("exposure_start", exposure.start_us),
                             ("exposure_end", exposure.end_us), ("sharp", sharp),
-                            ("contrast", contrast)):
+                            ("contrast", contrast), ("motion", motion)):
             if name not in g:
                 if value is not None:
                     raise InputError(f"'{name}' given for frame {k} but not for the first frame")
                 continue
             if value is None:
                 raise InputError(f"'{name}' missing for frame {k} (the first frame had it)")
+            if name == "motion" and np.shape(value) != g[name].shape[1:]:
+                raise InputError(f"the camera path of frame {k} has shape {np.shape(value)}, "
+                                 f"the first frame's {g[name].shape[1:]}")
             g[name].resize((k + 1, *g[name].shape[1:]))
             g[name][k] = value
 
@@ -779,13 +799,15 @@ class H5Writer:
 
 
 def write_h5(path: str | Path, stream, *, blurry=None, exposures=None, sharp=None,
-             contrast=None, compression: str | None = None) -> Path:
-    """Write events (and optionally frames) in the trmd HDF5 layout, atomically."""
+             contrast=None, motion=None, compression: str | None = None) -> Path:
+    """Write events (and optionally frames, with ``motion`` (K, J, 3, 3) their true camera
+    paths) in the trmd HDF5 layout, atomically."""
     with H5Writer(path, stream.width, stream.height, compression=compression) as w:
         w.add_events(stream)
         for k in range(0 if blurry is None else len(blurry)):
             w.add_frame(blurry[k], exposures[k], None if sharp is None else sharp[k],
-                        None if contrast is None else float(np.ravel(contrast)[k]))
+                        None if contrast is None else float(np.ravel(contrast)[k]),
+                        None if motion is None else motion[k])
     return Path(path)
 
 

@@ -25,7 +25,8 @@ app = typer.Typer(
 )
 
 #: command modules, in the order `trmd --help` lists them
-COMMANDS = ("deblur", "hfr", "info", "voxelize", "convert", "simulate", "train", "eval")
+COMMANDS = ("deblur", "hfr", "motion", "info", "voxelize", "convert", "simulate", "train",
+            "eval")
 
 
 def _version(value: bool) -> None:

@@ -41,7 +41,10 @@ def eval_command(
              "blurry/ + events (or a bins file) + sharp/, or any recording with frames (no "
              "ground truth).", readable=False)],
     methods: Annotated[str, typer.Option(
-        "--methods", help="Comma-separated: blurry, edi, edi-true-c, trmd.")
+        "--methods", help="Comma-separated: blurry, edi, edi-true-c (EDI with a simulated "
+        "set's true c), trmd, motion, motion-true-path (motion deconvolution along a simulated "
+        "set's true camera path instead of the estimated one: the estimate's cost, as the gap "
+        "between the two rows).")
     ] = "blurry,edi,trmd",
     n: N = 3,
     json_out: Annotated[Path | None, typer.Option(
@@ -71,7 +74,12 @@ def eval_command(
     topics: Topics = None,
 ) -> None:
     """Score deblurring methods: PSNR/SSIM against ground truth (middle frame and all 2N+1),
-    or sharpness, noise and event consistency on real recordings without it."""
+    or sharpness, noise and event consistency on real recordings without it.
+
+    On sets that `trmd simulate` made from a still image, `--methods motion,motion-true-path`
+    puts the motion method beside itself given the true camera path (stored as frames/motion):
+    the difference is what the estimated motion costs. A set without a stored path is refused
+    for motion-true-path."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
     from ..evaluate import evaluate, parse_methods

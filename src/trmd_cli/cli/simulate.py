@@ -82,8 +82,9 @@ def simulate(
     overwrite: Overwrite = False,
 ) -> None:
     """Simulate an event camera over a still, a video or a frame folder; write blurry frames,
-    events, exposure windows, sharp ground truth (2N+1 frames per exposure) and the true
-    contrast threshold to one HDF5 file that `info`, `voxelize`, `deblur` and `eval` read.
+    events, exposure windows, sharp ground truth (2N+1 frames per exposure), the true
+    contrast threshold and, for stills, the true camera path of each exposure to one HDF5 file
+    that `info`, `voxelize`, `deblur` and `eval` read.
 
     8-bit images and videos are treated as linear intensity, as the GOPRO-based event datasets
     do. Videos and frame folders are upsampled in time with optical flow so that no point moves
@@ -375,7 +376,8 @@ def _write_items(items, writer, contrast: float) -> tuple[int, int]:
             writer.add_events(item)
             events += len(item)
         else:
-            writer.add_frame(item.blurry, item.exposure, sharp=item.sharp, contrast=contrast)
+            writer.add_frame(item.blurry, item.exposure, sharp=item.sharp, contrast=contrast,
+                             motion=item.motion)
             frames += 1
     return events, frames
 

@@ -10,7 +10,8 @@ stored, ground truth.
   binned events only;
 * a GOPRO-style HDF5 (:mod:`trmd_cli.read.gopro`): binned events only;
 * any event file with stored frames and exposures (the trmd HDF5 with ``frames/sharp`` carries
-  ground truth and the true contrast).
+  ground truth and the true contrast; simulated from a still, also ``frames/motion``, the true
+  camera path of each exposure).
 
 Frames come from the same readers and frame sources ``trmd deblur`` uses.
 """
@@ -25,6 +26,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..events import EventStream, Exposure
+from ..motion.sampled import SampledMotion
 from .base import ReadOptions
 
 __all__ = ["EvalFrame", "EvalSource", "open_dataset"]
@@ -49,6 +51,7 @@ class EvalFrame:
             events (GOPRO-style voxels: M = 2N; a bins file: its bins per frame).
         truth: (2N+1, H, W[, 3]) float32 sharp frames, or None.
         contrast: the true mean contrast threshold stored with simulated data, or None.
+        motion: the true camera path over the exposure stored with simulated data, or None.
     """
 
     index: int
@@ -60,6 +63,7 @@ class EvalFrame:
     bins: np.ndarray | None = None
     truth: np.ndarray | None = None
     contrast: float | None = None
+    motion: SampledMotion | None = None
 
 
 class EvalSource:
@@ -68,7 +72,8 @@ class EvalSource:
     Attributes:
         path, kind (``"trmd-h5" | "gopro-h5" | "folder" | "binned" | "recording"``), width,
             height, n.
-        has_ground_truth, has_true_contrast, has_raw_events.
+        has_ground_truth, has_true_contrast, has_true_motion (the simulator's camera path),
+            has_raw_events.
         notes: things the user should know (printed by the CLI, stored in the report).
     """
 
@@ -79,6 +84,7 @@ class EvalSource:
     n: int
     has_ground_truth: bool = False
     has_true_contrast: bool = False
+    has_true_motion: bool = False
     has_raw_events: bool = True
 
     def __init__(self) -> None:
@@ -128,6 +134,7 @@ class _WindowSource(EvalSource):
     def __init__(self, path: Path, kind: str, frames, n: int, *, recording=None,
                  truth: Callable[[int, str], np.ndarray | None] | None = None,
                  contrast: Callable[[int], float | None] | None = None,
+                 motion: Callable[[int], np.ndarray | None] | None = None,
                  has_truth: bool = False, has_contrast: bool = False) -> None:
         super().__init__()
         self.path, self.kind, self.n = path, kind, n
@@ -135,9 +142,11 @@ class _WindowSource(EvalSource):
         self._rec = recording
         self._truth = truth
         self._contrast = contrast
+        self._motion = motion
         self.width, self.height = frames.width, frames.height
         self.has_ground_truth = has_truth
         self.has_true_contrast = has_contrast
+        self.has_true_motion = motion is not None
         self.notes.extend(frames.warnings)
 
     def __len__(self) -> int:
@@ -152,7 +161,13 @@ class _WindowSource(EvalSource):
             truth = _checked_truth(self._truth, f, self.n, self.path)
             c = self._contrast(f.index) if self._contrast else None
             yield EvalFrame(f.index, f.name, f.image, exp.instants_us(self.n), exp, win.events,
-                            None, truth, c)
+                            None, truth, c, self._true_motion(f.index))
+
+    def _true_motion(self, index: int) -> SampledMotion | None:
+        h = self._motion(index) if self._motion else None
+        if h is None:
+            return None
+        return SampledMotion(h, centre=((self.width - 1) / 2, (self.height - 1) / 2))
 
     def close(self) -> None:
         self._src.close()
@@ -333,9 +348,11 @@ def open_dataset(path: str | Path, n: int = 3, options: ReadOptions | None = Non
         if has_truth and len(frames):
             _check_truth_count(rec.ground_truth(0).shape[0], n, path)
         kind = "trmd-h5" if getattr(rec, "layout", None) == "trmd" else "recording"
+        has_motion = bool(getattr(rec, "has_true_motion", False))
         return _WindowSource(path, kind, frames, n, recording=rec,
                              truth=(lambda k, _name: rec.ground_truth(k)) if has_truth else None,
                              contrast=rec.contrast if has_c else None,
+                             motion=rec.true_motion if has_motion else None,
                              has_truth=has_truth, has_contrast=has_c)
     except BaseException:
         rec.close()

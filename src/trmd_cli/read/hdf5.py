@@ -5,7 +5,8 @@ Layouts (docs/formats.md):
 - trmd (root attr ``format="trmd"``): ``events/x,y`` uint16, ``events/t`` int64 µs, ``events/p``
   int8 ±1, root attrs ``width``, ``height``; optional ``frames/blurry`` (K, H, W[, 3]) float [0,1],
   ``frames/exposure_start|exposure_end`` (K,) int64 µs, ``frames/sharp`` (K, 2N+1, H, W[, 3]),
-  ``frames/contrast`` (K,); ``windows/start_us|end_us`` (K,) int64 µs: windows without frames.
+  ``frames/contrast`` (K,), ``frames/motion`` (K, J, 3, 3) the simulator's true camera path;
+  ``windows/start_us|end_us`` (K,) int64 µs: windows without frames.
 - event_utils / E2VID: ``events/xs, ys, ts, ps`` (ts float seconds), root attr
   ``sensor_resolution`` (H, W).
 - DSEC: ``events/x, y, t, p`` with t in µs relative to the root dataset ``t_offset``; Blosc
@@ -21,8 +22,8 @@ import numpy as np
 
 from ..errors import FormatError, InputError
 from ..events import EventStream, Exposure, make_stream
-from .base import Frame, ReadOptions, Recording
 from ..units import to_microseconds
+from .base import Frame, ReadOptions, Recording
 
 __all__ = ["read_hdf5", "HDF5Recording"]
 
@@ -330,6 +331,37 @@ class HDF5Recording(Recording):
             return float(self._f["frames/contrast"][k])
         except _H5_ERRORS as e:
             raise self._read_error(e) from None
+
+    @property
+    def has_true_motion(self) -> bool:
+        """The file stores the simulator's true camera path (``frames/motion``)."""
+        return self._has("frames/motion")
+
+    def true_motion(self, k: int) -> np.ndarray | None:
+        """(J, 3, 3) float64 homographies of exposure k: middle-frame pixels → pixels at
+        exposure fraction ``j/(J−1)`` (see :class:`~trmd_cli.write.H5Writer`); None when the
+        file stores none."""
+        if not self.has_true_motion:
+            return None
+        try:
+            ds = self._f["frames/motion"]
+            shape = ds.shape
+            if shape is None or len(shape) != 4 or shape[2:] != (3, 3) or shape[1] < 2:
+                raise FormatError(f"frames/motion has shape {shape}, expected (K, J, 3, 3)",
+                                  path=self.path, hint="store one (J, 3, 3) camera path per "
+                                  "frame, or remove frames/motion")
+            if not 0 <= k < shape[0]:
+                raise FormatError(f"frames/motion holds {shape[0]} camera paths, none for "
+                                  f"frame {k}", path=self.path,
+                                  hint="store one camera path per frame, or remove "
+                                  "frames/motion")
+            h = np.asarray(ds[k], np.float64)
+        except _H5_ERRORS as e:
+            raise self._read_error(e) from None
+        if not np.isfinite(h).all():
+            raise FormatError(f"frames/motion of frame {k} holds NaN or infinite values",
+                              path=self.path, hint="repair or remove frames/motion")
+        return h
 
     def close(self) -> None:
         f = getattr(self, "_f", None)

@@ -34,8 +34,8 @@ import numpy as np
 
 from ..errors import FormatError, InputError
 from ..events import Exposure, make_stream
-from .base import MemoryRecording, ReadOptions
 from ..units import UNIT_SCALE_US
+from .base import MemoryRecording, ReadOptions
 
 __all__ = ["read_mat", "read_mat_window", "mat_variable_names", "seconds_to_us"]
 

@@ -29,9 +29,9 @@ import numpy as np
 
 from ..errors import FormatError, InputError, TrmdError
 from ..events import Exposure, make_stream
+from ..units import to_microseconds
 from .base import MemoryRecording, ReadOptions
 from .chunked import Chunk, ChunkedRecording
-from ..units import to_microseconds
 
 __all__ = ["read_npz", "read_npy"]
 

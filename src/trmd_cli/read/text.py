@@ -31,8 +31,8 @@ import numpy as np
 
 from ..errors import FormatError, InputError
 from ..events import make_stream
-from .chunked import Chunk, ChunkedRecording
 from ..units import to_microseconds
+from .chunked import Chunk, ChunkedRecording
 
 __all__ = ["read_text", "parse_text_events", "TextRecording", "TEXT_BLOCK_BYTES"]
 

@@ -36,12 +36,17 @@ class ExposureResult:
         exposure: its window, µs.
         blurry: (H, W) float32, mean of the sub-steps (+ read noise), [0, 1].
         sharp: (2N+1, H, W) float32 latent frames at ``t0 + k·T/(2N)``.
+        motion: (J, 3, 3) float64 true camera path over the exposure (middle-frame pixels →
+            pixels at exposure fraction ``j/(J−1)``; see
+            :meth:`~trmd_cli.simulate.trajectory.StillScene.exposure_motion`), or None when
+            the scene has no camera path (videos).
     """
 
     index: int
     exposure: Exposure
     blurry: np.ndarray
     sharp: np.ndarray
+    motion: np.ndarray | None = None
 
 
 def latent_times(exposure: Exposure, n: int) -> np.ndarray:

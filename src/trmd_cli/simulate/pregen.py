@@ -5,8 +5,8 @@ have (same seed, same index).
 
 Layout: the samples sit one after another on one timeline, sample ``i``'s exposure starting
 ``GAP_US`` after the previous one ends; ``frames/sharp`` holds the ground truth,
-``frames/contrast`` each sample's true mean threshold, and the root attribute ``simulator`` the
-generator settings as JSON.
+``frames/contrast`` each sample's true mean threshold, ``frames/motion`` its true camera path,
+and the root attribute ``simulator`` the generator settings as JSON.
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ def pregenerate(
             for i, s in enumerate(samples):
                 w.add_events(_shift(s.events, offset))
                 w.add_frame(s.blurry, s.exposure.shifted(offset), sharp=s.sharp,
-                            contrast=s.contrast)
+                            contrast=s.contrast, motion=s.motion)
                 offset += s.exposure.end_us + GAP_US
                 if progress is not None:
                     progress(i + 1, count)

@@ -8,7 +8,7 @@ sub-step, runs the event sensor over the sub-steps and averages them over each e
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -19,10 +19,15 @@ from .sensor import EventSensor, SensorConfig
 from .trajectory import MotionRanges, StillScene, make_scene
 
 __all__ = ["Sample", "SimulatedSequence", "SequencePlan", "make_sample", "make_sequence",
-           "iter_sequence", "plan_sequence", "plan_exposures", "DEFAULT_EXPOSURE_US"]
+           "iter_sequence", "plan_sequence", "plan_exposures", "DEFAULT_EXPOSURE_US",
+           "MOTION_SAMPLES"]
 
 #: default exposure of a simulated frame, µs
 DEFAULT_EXPOSURE_US = 20_000
+#: instants per exposure at which the true camera path is recorded (fractions j/32): the
+#: path's knots are half an exposure apart, so straight lines between these bend it by
+#: ≈ 0.01 px even at the training set's largest motion
+MOTION_SAMPLES = 33
 
 
 @dataclass(frozen=True, eq=False)
@@ -35,6 +40,8 @@ class Sample:
         events: the exposure's events, times in ``[exposure.start_us, exposure.end_us]``.
         exposure: the window (starts at 0 for :func:`make_sample`).
         contrast: mean true contrast threshold of the sensor (ON and OFF, all pixels).
+        motion: (J, 3, 3) float64 true camera path: middle-frame pixels → pixels at exposure
+            fraction ``j/(J−1)`` (:class:`~trmd_cli.motion.SampledMotion` reads it).
     """
 
     blurry: np.ndarray
@@ -42,6 +49,7 @@ class Sample:
     events: EventStream
     exposure: Exposure
     contrast: float
+    motion: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,6 +60,8 @@ class SimulatedSequence:
         blurry: (K, H, W) float32; sharp: (K, 2N+1, H, W) float32.
         exposures: K windows, µs. events: all events of the span (gaps included).
         contrast: mean true contrast threshold.
+        motion: (K, J, 3, 3) float64 true camera path of each exposure (see
+            :class:`Sample`).
     """
 
     blurry: np.ndarray
@@ -59,6 +69,7 @@ class SimulatedSequence:
     exposures: list[Exposure]
     events: EventStream
     contrast: float
+    motion: np.ndarray | None = None
 
 
 def plan_exposures(frames: int, exposure_us: int, interval_us: int | None,
@@ -146,7 +157,9 @@ def iter_sequence(
     progress: Callable[[int], None] | None = None,
 ) -> tuple[EventSensor, list[Exposure], Iterator[EventStream | ExposureResult]]:
     """Streaming form of :func:`make_sequence`: returns the sensor, the exposures and an
-    iterator of event blocks and finished exposures (bounded memory for long sequences)."""
+    iterator of event blocks and finished exposures (bounded memory for long sequences); each
+    finished exposure carries its true camera path (``ExposureResult.motion``, at
+    :data:`MOTION_SAMPLES` even fractions)."""
     plan = plan_sequence(image, n=n, size=size, exposure_us=exposure_us, frames=frames,
                          frame_interval_us=frame_interval_us, rng=rng, motion=motion,
                          max_px_per_step=max_px_per_step, zoom=zoom, random_view=random_view,
@@ -156,7 +169,17 @@ def iter_sequence(
     it = run_exposures(grid_blocks(plan.grid_us, plan.scene.render), plan.exposures, n,
                        ev_sensor, read_noise=read_noise, noise_rng=plan.noise_rng,
                        progress=progress)
-    return ev_sensor, plan.exposures, it
+    return ev_sensor, plan.exposures, _with_motion(it, plan.scene)
+
+
+def _with_motion(items: Iterator[EventStream | ExposureResult], scene: StillScene
+                 ) -> Iterator[EventStream | ExposureResult]:
+    fractions = np.linspace(0.0, 1.0, MOTION_SAMPLES)
+    for item in items:
+        if isinstance(item, ExposureResult):
+            e = item.exposure
+            item = replace(item, motion=scene.exposure_motion(e.start_us, e.end_us, fractions))
+        yield item
 
 
 def make_sequence(image: np.ndarray, **kwargs) -> SimulatedSequence:
@@ -170,13 +193,15 @@ def make_sequence(image: np.ndarray, **kwargs) -> SimulatedSequence:
     events: list[EventStream] = []
     blurry = np.zeros((len(exposures), h, w), np.float32)
     sharp = np.zeros((len(exposures), 2 * n + 1, h, w), np.float32)
+    motion = np.zeros((len(exposures), MOTION_SAMPLES, 3, 3))
     for item in it:
         if isinstance(item, EventStream):
             events.append(item)
         else:
             blurry[item.index], sharp[item.index] = item.blurry, item.sharp
+            motion[item.index] = item.motion
     stream = EventStream.concatenate(events) if events else EventStream.empty(w, h)
-    return SimulatedSequence(blurry, sharp, exposures, stream, ev_sensor.mean_contrast)
+    return SimulatedSequence(blurry, sharp, exposures, stream, ev_sensor.mean_contrast, motion)
 
 
 def make_sample(
@@ -211,4 +236,5 @@ def make_sample(
     seq = make_sequence(image, n=n, size=size, exposure_us=exposure_us, frames=1, rng=rng,
                         sensor=sensor, motion=motion, read_noise=read_noise,
                         max_px_per_step=max_px_per_step, zoom=zoom, random_view=random_view)
-    return Sample(seq.blurry[0], seq.sharp[0], seq.events, seq.exposures[0], seq.contrast)
+    return Sample(seq.blurry[0], seq.sharp[0], seq.events, seq.exposures[0], seq.contrast,
+                  seq.motion[0])

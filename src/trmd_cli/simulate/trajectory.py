@@ -270,6 +270,21 @@ class StillScene:
                 out[i] += alpha * (tex - out[i])
         return out
 
+    def exposure_motion(self, start_us: float, end_us: float, fractions) -> np.ndarray:
+        """The camera's true motion over the exposure ``[start_us, end_us]`` (µs): (J, 3, 3)
+        homographies mapping a pixel of its middle frame (the frame :meth:`render` draws at
+        mid-exposure) to where that point of the scene is at each of ``fractions`` (J,) of the
+        exposure, output pixels, normalised to ``H[2, 2] = 1``.
+
+        :meth:`render` samples ``src(A0 · G(u) · x)``: a scene point seen at ``y`` in the
+        middle frame is at ``x = G(u)⁻¹ · G(u_mid) · y`` at time u (the view ``A0`` cancels).
+        Foreground layers move on their own and are not part of it."""
+        f = np.asarray(fractions, np.float64)
+        times = start_us + f * (end_us - start_us)
+        g = self.camera.homographies(self._u(np.append(times, 0.5 * (start_us + end_us))))
+        h = np.linalg.solve(g[:-1], np.broadcast_to(g[-1], g[:-1].shape))
+        return h / h[:, 2:3, 2:3]
+
     def max_speed_px(self, u_start: float, u_end: float, samples_per_exposure: int = 32) -> float:
         """Largest image-space speed (output px per exposure) of the camera's corners and centre
         and of every layer's corners, over ``[u_start, u_end]`` exposures."""
