@@ -36,9 +36,19 @@ def test_constant_frame_blurs_to_itself():
     assert torch.allclose(op.apply(x), torch.full((1, H, W), 0.4), atol=1e-6)
 
 
+def test_operator_is_the_mean_of_the_warped_frames():
+    """The sparse ``A`` sums the same bilinear stencils as ``grid_sample`` does per instant."""
+    op = BlurOperator(MOTION, W, H, dtype=torch.float64)
+    x = torch.rand((1, *op.canvas), generator=torch.Generator().manual_seed(2),
+                   dtype=torch.float64)
+    expected = op.warp(x).mean(0)
+    assert torch.allclose(op.apply(x), expected, atol=1e-12)
+
+
 def test_known_blur_is_undone_with_exact_motion():
     """Noise-free blur of a blocky pattern by the same model: the TV-regularised inverse
-    recovers the interior (what was in view all the exposure) to ≈ 39 dB (blurry: 18 dB)."""
+    recovers the interior (what was in view all the exposure) to > 40 dB (measured 41.2 dB;
+    blurry: 18 dB)."""
     op = BlurOperator(MOTION, W, H)
     hp, wp = op.canvas
     rng = np.random.default_rng(0)
@@ -51,7 +61,7 @@ def test_known_blur_is_undone_with_exact_motion():
     out = d.frames([0.5])[0]
     inner = (slice(6, -6), slice(8, -8))
     assert psnr(blurry[inner], sharp[inner]) < 20
-    assert psnr(out[inner], sharp[inner]) > 37
+    assert psnr(out[inner], sharp[inner]) > 40
     # the other instants are the middle frame carried along the motion
     late = d.frames([1.0])[0]
     shifted = op.warp(torch.from_numpy(big)[None], [1.0])[0, 0].numpy()

@@ -47,8 +47,8 @@ class DeconvConfig:
 
     penalty: float = 2e-3
     huber: float = 0.01
-    rounds: int = 4
-    iterations: int = 25
+    rounds: int = 3
+    iterations: int = 10
     step_px: float = 0.5
     margin_px: int = 3
 
@@ -56,15 +56,21 @@ class DeconvConfig:
 class BlurOperator:
     """``A``: a padded middle frame (C, H + 2P, W + 2P) → the blurry frame (C, H, W).
 
+    ``A`` is held as one sparse matrix (rows: sensor pixels, columns: canvas pixels) summing
+    the J bilinear stencils, so ``A x`` and ``Aᵀ y`` are one sparse product each.
+
     Args:
-        motion: the exposure's motion.
+        motion: the exposure's motion: any object with ``to_middle(fractions, x, y)`` and
+            ``max_displacement_px(width, height)`` (pixels, exposure fractions).
         width, height: sensor size, pixels.
         fractions: the J instants, exposure fractions; None = evenly spaced, at most
             ``step_px`` apart in motion, J ≥ 3.
         pad: P, canvas margin, pixels; None = the motion's largest displacement + margin.
+        dtype: torch dtype of the matrix and of what :meth:`apply` / :meth:`adjoint` return
+            (default float32).
     """
 
-    def __init__(self, motion: GlobalMotion, width: int, height: int, fractions=None,
+    def __init__(self, motion, width: int, height: int, fractions=None,
                  pad: int | None = None, step_px: float = 0.5, margin_px: int = 3,
                  dtype=None) -> None:
         import torch
@@ -77,14 +83,25 @@ class BlurOperator:
         self.fractions = np.asarray(fractions, np.float64)
         self.pad = int(math.ceil(disp)) + margin_px if pad is None else int(pad)
         self.motion, self.width, self.height = motion, width, height
-        self.grid = self._grid(self.fractions)
+        real = np.float64 if self.dtype == torch.float64 else np.float32
+        self.matrix = _stencil_matrix(motion, width, height, self.fractions, self.pad, real)
+        # Aᵀ stored as its own CSR: a row-wise product beats the CSC view of A
+        self.matrix_t = self.matrix.T.tocsr()
+        self._grid = None
 
     @property
     def canvas(self) -> tuple[int, int]:
         """(H + 2P, W + 2P) of the padded middle frame."""
         return self.height + 2 * self.pad, self.width + 2 * self.pad
 
-    def _grid(self, fractions):
+    @property
+    def grid(self):
+        """(J, H, W, 2) ``grid_sample`` grid of the J instants (built on first use)."""
+        if self._grid is None:
+            self._grid = self._grid_at(self.fractions)
+        return self._grid
+
+    def _grid_at(self, fractions):
         import torch
 
         hp, wp = self.canvas
@@ -100,23 +117,36 @@ class BlurOperator:
         """The middle frame ``x`` (C, Hp, Wp) seen at ``fractions``: (K, C, H, W)."""
         import torch.nn.functional as F
 
-        grid = self.grid if fractions is None else self._grid(fractions)
+        grid = self.grid if fractions is None else self._grid_at(fractions)
         inp = x.unsqueeze(0).expand(grid.shape[0], *x.shape)
-        return F.grid_sample(inp, grid, mode="bilinear", padding_mode="zeros",
+        return F.grid_sample(inp.to(grid.dtype), grid, mode="bilinear", padding_mode="zeros",
                              align_corners=True)
+
+    def apply_np(self, x: np.ndarray) -> np.ndarray:
+        """``A x`` on pixel-major arrays: (Hp·Wp, C) → (H·W, C)."""
+        return self.matrix @ x
+
+    def adjoint_np(self, y: np.ndarray) -> np.ndarray:
+        """``Aᵀ y`` on pixel-major arrays: (H·W, C) → (Hp·Wp, C)."""
+        return self.matrix_t @ y
 
     def apply(self, x):
         """``A x``: (C, Hp, Wp) → (C, H, W), the mean of the J warped frames."""
-        return self.warp(x).mean(0)
-
-    def adjoint(self, y):
-        """``Aᵀ y``: (C, H, W) → (C, Hp, Wp), exact (autograd of the linear map)."""
         import torch
 
-        z = torch.zeros((y.shape[0], *self.canvas), dtype=self.dtype, requires_grad=True)
-        with torch.enable_grad():
-            (g,) = torch.autograd.grad(self.apply(z), z, y)
-        return g
+        c = x.shape[0]
+        out = self.apply_np(x.detach().reshape(c, -1).T.numpy())
+        return torch.from_numpy(np.ascontiguousarray(out.T)).reshape(
+            c, self.height, self.width).to(self.dtype)
+
+    def adjoint(self, y):
+        """``Aᵀ y``: (C, H, W) → (C, Hp, Wp), the exact transpose of :meth:`apply`."""
+        import torch
+
+        c = y.shape[0]
+        out = self.adjoint_np(y.detach().reshape(c, -1).T.numpy())
+        return torch.from_numpy(np.ascontiguousarray(out.T)).reshape(
+            c, *self.canvas).to(self.dtype)
 
     def pad_frame(self, frame: np.ndarray):
         """A (H, W[, 3]) frame onto the canvas (edges replicated): (C, Hp, Wp) tensor."""
@@ -128,25 +158,67 @@ class BlurOperator:
         return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))).to(self.dtype)
 
 
-def _grad(x):
-    import torch
+def _stencil_matrix(motion, width: int, height: int, fractions: np.ndarray, pad: int,
+                    real) -> object:
+    """``A`` as a (H·W, Hp·Wp) CSR matrix of dtype ``real``: row ``y·W + x`` holds the J
+    bilinear stencils (weight 1/J each) of where ``motion`` carries sensor pixel (x, y) back to
+    on the canvas; taps off the canvas weigh nothing (as ``grid_sample`` with zero padding)."""
+    import scipy.sparse as sp
 
-    gx = torch.zeros_like(x)
-    gy = torch.zeros_like(x)
-    gx[..., :, :-1] = x[..., :, 1:] - x[..., :, :-1]
-    gy[..., :-1, :] = x[..., 1:, :] - x[..., :-1, :]
+    hp, wp = height + 2 * pad, width + 2 * pad
+    n, nj = height * width, len(fractions)
+    ys, xs = np.mgrid[0:height, 0:width].astype(np.float64)
+    # (J, 4, n): each instant's taps written contiguously, reordered row-major once at the end
+    cols = np.empty((nj, 4, n), np.int32)
+    vals = np.empty((nj, 4, n), real)
+    for j in range(nj):
+        # one instant at a time: (H, W) temporaries, not J times as many
+        xm, ym = motion.to_middle(fractions[j:j + 1, None, None], xs[None], ys[None])
+        xc = np.broadcast_to(xm, (1, height, width)).reshape(n) + pad
+        yc = np.broadcast_to(ym, (1, height, width)).reshape(n) + pad
+        x0, y0 = np.floor(xc), np.floor(yc)
+        fx, fy = (xc - x0) / nj, yc - y0
+        gx, gy = 1.0 / nj - fx, 1.0 - fy
+        i0 = y0 * wp + x0
+        inside = bool(((x0 >= 0) & (x0 < wp - 1) & (y0 >= 0) & (y0 < hp - 1)).all())
+        for k, (off, wt) in enumerate(((0, gx * gy), (1, fx * gy), (wp, gx * fy),
+                                       (wp + 1, fx * fy))):
+            cols[j, k] = i0 + off if inside else 0
+            vals[j, k] = wt
+        if not inside:
+            # a tap is kept where it lands on the canvas (rare: the motion leaves its margin)
+            xi, yi = x0.astype(np.int64), y0.astype(np.int64)
+            for k, (ox, oy) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
+                cx, cy = xi + ox, yi + oy
+                ok = (cx >= 0) & (cx < wp) & (cy >= 0) & (cy < hp)
+                cols[j, k] = np.where(ok, cy * wp + cx, 0)
+                vals[j, k] = np.where(ok, vals[j, k], 0)
+    k = 4 * nj
+    cols = np.ascontiguousarray(cols.reshape(k, n).T)
+    vals = np.ascontiguousarray(vals.reshape(k, n).T)
+    indptr = np.arange(0, n * k + 1, k, dtype=np.int64 if n * k >= 2**31 else np.int32)
+    a = sp.csr_matrix((vals.reshape(-1), cols.reshape(-1), indptr), shape=(n, hp * wp))
+    # consecutive instants share taps: merged, each product touches ~2× fewer entries
+    a.sum_duplicates()
+    return a
+
+
+def _grad(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Forward differences of a (Hp, Wp, C) image along x and y (0 on the last column/row)."""
+    gx = np.zeros_like(x)
+    gy = np.zeros_like(x)
+    np.subtract(x[:, 1:], x[:, :-1], out=gx[:, :-1])
+    np.subtract(x[1:], x[:-1], out=gy[:-1])
     return gx, gy
 
 
-def _grad_t(gx, gy):
+def _grad_t(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     """Exact transpose of :func:`_grad`."""
-    import torch
-
-    out = torch.zeros_like(gx)
-    out[..., :, 1:] += gx[..., :, :-1]
-    out[..., :, :-1] -= gx[..., :, :-1]
-    out[..., 1:, :] += gy[..., :-1, :]
-    out[..., :-1, :] -= gy[..., :-1, :]
+    out = np.zeros_like(gx)
+    out[:, 1:] += gx[:, :-1]
+    out[:, :-1] -= gx[:, :-1]
+    out[1:] += gy[:-1]
+    out[:-1] -= gy[:-1]
     return out
 
 
@@ -175,7 +247,7 @@ class Deconvolved:
                                     dtype=np.float32)
 
 
-def deconvolve(blurry: np.ndarray, motion: GlobalMotion, config: DeconvConfig | None = None,
+def deconvolve(blurry: np.ndarray, motion, config: DeconvConfig | None = None,
                start: np.ndarray | None = None, fractions=None) -> Deconvolved:
     """Recover the middle frame of ``blurry`` (H, W[, 3]) float32 along ``motion``.
 
@@ -187,43 +259,64 @@ def deconvolve(blurry: np.ndarray, motion: GlobalMotion, config: DeconvConfig | 
     cfg = DeconvConfig() if config is None else config
     h, w = blurry.shape[:2]
     op = BlurOperator(motion, w, h, fractions, step_px=cfg.step_px, margin_px=cfg.margin_px)
-    b = torch.from_numpy(np.ascontiguousarray(
-        (blurry[..., None] if blurry.ndim == 2 else blurry).transpose(2, 0, 1))).float()
-    x = op.pad_frame(blurry if start is None else start)
-    rhs = op.adjoint(b)
+    hp, wp = op.canvas
+    c = 1 if blurry.ndim == 2 else blurry.shape[2]
+    b = np.ascontiguousarray(blurry, np.float32).reshape(h * w, c)
+    x = op.pad_frame(blurry if start is None else start).numpy().transpose(1, 2, 0)
+    x = np.ascontiguousarray(x, np.float32)
+    rhs = op.adjoint_np(b).reshape(hp, wp, c)
+    # diag(AᵀA): the Jacobi preconditioner's data term (column sums of A²)
+    ata = np.asarray(op.matrix.multiply(op.matrix).sum(axis=0), np.float32).reshape(hp, wp, 1)
     lam, eps = float(cfg.penalty), float(cfg.huber)
-    with torch.no_grad():
-        for _ in range(max(cfg.rounds, 1)):
+    for _ in range(max(cfg.rounds, 1)):
+        if cfg.rounds == 1:
+            lw = np.full((hp, wp, c), lam / eps, np.float32)
+        else:
             gx, gy = _grad(x)
-            wgt = 1.0 / torch.clamp(torch.sqrt(gx * gx + gy * gy), min=eps)
-            if cfg.rounds == 1:
-                wgt = torch.full_like(wgt, 1.0 / eps)
+            lw = (lam / np.maximum(np.sqrt(gx * gx + gy * gy), eps)).astype(np.float32)
 
-            def normal(v, wgt=wgt):
-                vx, vy = _grad(v)
-                return op.adjoint(op.apply(v)) + lam * _grad_t(wgt * vx, wgt * vy)
+        def normal(v: np.ndarray, lw: np.ndarray = lw) -> np.ndarray:
+            vx, vy = _grad(v)
+            vx *= lw
+            vy *= lw
+            out = op.adjoint_np(op.apply_np(v.reshape(hp * wp, c))).reshape(hp, wp, c)
+            out += _grad_t(vx, vy)
+            return out
 
-            x = _cg(normal, rhs, x, cfg.iterations)
-        re = op.apply(x).numpy().transpose(1, 2, 0)
+        # diag(λ DᵀWD): the difference leaving a pixel and the one arriving from its left
+        # (upper) neighbour, each with its own weight
+        dia = ata + 2.0 * lw
+        dia[:, -1] -= lw[:, -1]
+        dia[-1] -= lw[-1]
+        dia[:, 1:] += lw[:, :-1]
+        dia[1:] += lw[:-1]
+        x = _pcg(normal, rhs, x, 1.0 / np.maximum(dia, 1e-12), cfg.iterations)
+    re = op.apply_np(x.reshape(hp * wp, c)).reshape(h, w, c)
     re = re[..., 0] if blurry.ndim == 2 else re
-    return Deconvolved(op, x, np.ascontiguousarray(re, dtype=np.float32))
+    middle = torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1)))
+    return Deconvolved(op, middle, np.ascontiguousarray(re, dtype=np.float32))
 
 
-def _cg(normal, rhs, x, iterations: int):
+def _pcg(normal, rhs: np.ndarray, x: np.ndarray, inv_diag: np.ndarray,
+         iterations: int) -> np.ndarray:
+    """``iterations`` of conjugate gradients on ``normal(x) = rhs`` from ``x``, preconditioned
+    by ``inv_diag`` (the inverse of the normal matrix's diagonal)."""
     r = rhs - normal(x)
-    p = r.clone()
-    rr = float((r * r).sum())
-    r0 = rr
+    z = r * inv_diag
+    p = z.copy()
+    rz = float(np.vdot(r, z))
+    r0 = rz
     for _ in range(iterations):
-        if rr <= 1e-20 * max(r0, 1e-30):
+        if rz <= 1e-20 * max(r0, 1e-30):
             break
         q = normal(p)
-        alpha = rr / max(float((p * q).sum()), 1e-30)
+        alpha = rz / max(float(np.vdot(p, q)), 1e-30)
         x = x + alpha * p
-        r = r - alpha * q
-        rr_new = float((r * r).sum())
-        p = r + (rr_new / rr) * p
-        rr = rr_new
+        r -= alpha * q
+        z = r * inv_diag
+        rz_new = float(np.vdot(r, z))
+        p = z + (rz_new / rz) * p
+        rz = rz_new
     return x
 
 
@@ -286,16 +379,14 @@ def tile_gains(motion: GlobalMotion, x, y, u, width: int, height: int, tile: int
     ``motion`` over unwarped (variance ratio of the event images after a σ = 1 px Gaussian,
     both summed over the tile); tiles with fewer than ``min_events`` events get +inf (no
     evidence against the motion)."""
-    from scipy.ndimage import gaussian_filter
-
-    from .motion.cmax import _votes
+    from .motion.cmax import _blur, _votes
 
     zero = GlobalMotion(centre=motion.centre)
     th, tw = -(-height // tile), -(-width // tile)
 
     def tiled_energy(m):
         xm, ym = m.to_middle(u, x, y)
-        img = gaussian_filter(_votes(xm, ym, width, height), 1.0, mode="constant")
+        img = _blur(_votes(xm, ym, width, height))
         img = np.pad(img, ((0, th * tile - height), (0, tw * tile - width)))
         blk = img.reshape(th, tile, tw, tile)
         return (blk * blk).sum((1, 3))

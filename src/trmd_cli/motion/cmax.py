@@ -39,6 +39,7 @@ class MotionSearch:
         rotation_zoom: refine rotation and zoom too (else translation + acceleration only).
         max_events: events used per level (a fixed random subset when there are more).
         seed: the subset's generator seed.
+        iterations: quasi-Newton steps per refinement, at most.
     """
 
     max_velocity_px: float = 48.0
@@ -47,6 +48,7 @@ class MotionSearch:
     rotation_zoom: bool = True
     max_events: int = 60_000
     seed: int = 0
+    iterations: int = 30
 
 
 def _params_to_motion(q: np.ndarray, centre, radius: float, conf: float = 0.0,
@@ -66,39 +68,197 @@ def warped_image(motion: GlobalMotion, x: np.ndarray, y: np.ndarray, u: np.ndarr
 
 
 def _votes(xs: np.ndarray, ys: np.ndarray, w: int, h: int) -> np.ndarray:
-    x0 = np.floor(xs)
-    y0 = np.floor(ys)
-    fx, fy = xs - x0, ys - y0
-    xi, yi = x0.astype(np.int64), y0.astype(np.int64)
-    acc = np.zeros(h * w)
-    for ox, oy, wt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
-                       (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        cx, cy = xi + ox, yi + oy
-        ok = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h)
-        acc += np.bincount(cy[ok] * w + cx[ok], weights=wt[ok], minlength=h * w)
-    return acc.reshape(h, w)
+    """Bilinear votes of points ``(xs, ys)`` (pixels of a (h, w) grid): (h, w) float64; a
+    vote that lands off the grid is dropped."""
+    return _Taps(xs, ys, w, h).image()
+
+
+class _Taps:
+    """Where points ``(xs, ys)`` vote on a (h, w) grid: the flat index of each point's
+    top-left tap on the grid padded by two cells, and its bilinear fractions. A point is
+    first clipped into that margin: one that lies off the grid still votes only into the
+    margin (cropped away), so no mask is needed and its gradient comes out zero."""
+
+    def __init__(self, xs: np.ndarray, ys: np.ndarray, w: int, h: int) -> None:
+        xs = np.clip(xs, -2.0, w + 0.5)
+        ys = np.clip(ys, -2.0, h + 0.5)
+        x0, y0 = np.floor(xs), np.floor(ys)
+        self.fx, self.fy = xs - x0, ys - y0
+        self.w, self.h = w, h
+        self.stride = w + 4
+        y0 *= self.stride
+        y0 += x0
+        y0 += 2 * self.stride + 2
+        self.index = y0.astype(np.intp)
+
+    def image(self) -> np.ndarray:
+        """The (h, w) image of the votes."""
+        fx, fy, s, i = self.fx, self.fy, self.stride, self.index
+        gx, gy = 1.0 - fx, 1.0 - fy
+        # one bincount over the four taps (four separate ones cost ~4× the passes)
+        acc = np.bincount(np.concatenate((i, i + 1, i + s, i + s + 1)),
+                          np.concatenate((gx * gy, fx * gy, gx * fy, fx * fy)),
+                          minlength=(self.h + 4) * s)
+        return acc.reshape(self.h + 4, s)[2:-2, 2:-2]
+
+    def gradient(self, dimg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Given ∂f/∂image (h, w), ∂f/∂xs and ∂f/∂ys of each point (the exact derivative of
+        the bilinear votes, piecewise constant in the point's cell)."""
+        s = self.stride
+        pad = np.zeros((self.h + 4, s))
+        pad[2:-2, 2:-2] = dimg
+        flat = pad.reshape(-1)
+        i = self.index
+        r00, r10 = flat[i], flat[i + 1]
+        r01, r11 = flat[i + s], flat[i + s + 1]
+        d0 = r10 - r00
+        d1 = r11 - r01
+        gxs = d0 + self.fy * (d1 - d0)
+        e0 = r01 - r00
+        e1 = r11 - r10
+        gys = e0 + self.fx * (e1 - e0)
+        return gxs, gys
+
+
+def _blur(img: np.ndarray) -> np.ndarray:
+    """Gaussian of σ = 1 cell (radius 4) with zeros beyond the border; symmetric, so it is its
+    own transpose."""
+    import cv2
+
+    return cv2.GaussianBlur(img, (9, 9), 1.0, borderType=cv2.BORDER_CONSTANT)
 
 
 class _Level:
-    """One resolution: the events, the grid, and the unwarped image's variance."""
+    """One resolution: the events, the grid, and the unwarped image's variance.
+
+    The objective is the gain ``var(g ∗ IWE(q)) / var(g ∗ IWE(0))`` with ``q`` = (vx, vy, ax,
+    ay, ω·R, ζ·R) (pixels per exposure, per exposure², and the rotation and zoom scaled by
+    the radius ``R`` so that every parameter moves a far pixel by comparable amounts). The
+    warp is :meth:`GlobalMotion.to_middle` written out on per-level constants."""
 
     def __init__(self, x, y, u, width, height, scale, centre, radius):
         self.x, self.y, self.u = x, y, u
+        self.tau = u - 0.5
+        self.half_tau2 = 0.5 * self.tau * self.tau
+        self.rx, self.ry = x - centre[0], y - centre[1]
         self.scale = scale
         self.w, self.h = int(math.ceil(width / scale)), int(math.ceil(height / scale))
         self.centre, self.radius = centre, radius
-        self.base = max(self._variance(x / scale, y / scale), 1e-12)
+        img = _blur(_votes(x / scale, y / scale, self.w, self.h))
+        self.base = max(float(img.var()), 1e-12)
 
-    def _variance(self, xs, ys) -> float:
-        from scipy.ndimage import gaussian_filter
-
-        img = gaussian_filter(_votes(xs, ys, self.w, self.h), 1.0, mode="constant")
-        return float(img.var())
+    def _warp(self, q: np.ndarray):
+        """The events carried to the middle by ``q``, about the centre (pixels), and the
+        per-event ``(a, b)`` of the inverse rotation-zoom ``[[a, b], [−b, a]]``."""
+        t, t2 = self.tau, self.half_tau2
+        rx = self.rx - q[0] * t
+        rx -= q[2] * t2
+        ry = self.ry - q[1] * t
+        ry -= q[3] * t2
+        om, ze = q[4] / self.radius, q[5] / self.radius
+        if om == 0.0 and ze == 0.0:
+            return rx, ry, 1.0, 0.0
+        e = np.exp(-ze * t)
+        a = np.cos(om * t) * e
+        b = np.sin(om * t) * e
+        return a * rx + b * ry, a * ry - b * rx, a, b
 
     def gain(self, q: np.ndarray) -> float:
-        m = _params_to_motion(q, self.centre, self.radius)
-        xm, ym = m.to_middle(self.u, self.x, self.y)
-        return self._variance(xm / self.scale, ym / self.scale) / self.base
+        """The gain at ``q``."""
+        return self.gain_and_gradient(q, False)[0]
+
+    def _buffers(self) -> dict:
+        # per-event work arrays kept between evaluations: fresh ones of this size cost a
+        # page fault per 4 KiB each time, which outweighs the arithmetic on them
+        if not hasattr(self, "_work"):
+            n = len(self.x)
+            self._work = {"f": np.empty((8, n)), "i": np.empty(4 * n, np.intp),
+                          "w": np.empty(4 * n), "pad": np.zeros((self.h + 4, self.w + 4))}
+        return self._work
+
+    def gain_and_gradient(self, q: np.ndarray, gradient: bool = True, free: int = 6
+                          ) -> tuple[float, np.ndarray | None]:
+        """The gain at ``q`` and (with ``gradient``) its (6,) gradient in ``q`` (only the
+        first ``free`` entries are computed, the rest are 0)."""
+        mx, my, a, b = self._warp(q)
+        work = self._buffers()
+        f, idx, wts = work["f"], work["i"], work["w"]
+        n, w, h = len(self.x), self.w, self.h
+        stride = w + 4
+        inv = 1.0 / self.scale
+        xs, ys, x0, y0 = f[0], f[1], f[2], f[3]
+        # the events on the grid, clipped into its two-cell margin (see :class:`_Taps`)
+        np.add(mx, self.centre[0], out=xs)
+        xs *= inv
+        np.add(my, self.centre[1], out=ys)
+        ys *= inv
+        np.clip(xs, -2.0, w + 0.5, out=xs)
+        np.clip(ys, -2.0, h + 0.5, out=ys)
+        np.floor(xs, out=x0)
+        np.floor(ys, out=y0)
+        xs -= x0
+        ys -= y0
+        fx, fy = xs, ys
+        y0 *= stride
+        y0 += x0
+        y0 += 2 * stride + 2
+        i0 = idx[:n]
+        np.copyto(i0, y0, casting="unsafe")
+        np.add(i0, 1, out=idx[n:2 * n])
+        np.add(i0, stride, out=idx[2 * n:3 * n])
+        np.add(i0, stride + 1, out=idx[3 * n:])
+        gx, gy = x0, y0
+        np.subtract(1.0, fx, out=gx)
+        np.subtract(1.0, fy, out=gy)
+        np.multiply(gx, gy, out=wts[:n])
+        np.multiply(fx, gy, out=wts[n:2 * n])
+        np.multiply(gx, fy, out=wts[2 * n:3 * n])
+        np.multiply(fx, fy, out=wts[3 * n:])
+        votes = np.bincount(idx, wts, minlength=(h + 4) * stride)
+        img = _blur(votes.reshape(h + 4, stride)[2:-2, 2:-2])
+        dev = img - img.mean()
+        g = float((dev * dev).mean()) / self.base
+        if not gradient:
+            return g, None
+        # d var / d image = (2 / n) gᵀ(g ∗ I − μ): the mean's own term sums to zero
+        pad = work["pad"]
+        pad[2:-2, 2:-2] = _blur(dev) * (2.0 * inv / (dev.size * self.base))
+        flat = pad.reshape(-1)
+        r00, r10, r01, r11 = f[2], f[3], f[4], f[5]
+        np.take(flat, i0, out=r00)
+        np.take(flat, idx[n:2 * n], out=r10)
+        np.take(flat, idx[2 * n:3 * n], out=r01)
+        np.take(flat, idx[3 * n:], out=r11)
+        # ∂/∂xs = (r10 − r00) + fy·(r11 − r01 − r10 + r00), and likewise for ys
+        e0, e1 = f[6], f[7]
+        np.subtract(r01, r00, out=e0)
+        np.subtract(r11, r10, out=e1)
+        r10 -= r00
+        r11 -= r01
+        r11 -= r10
+        r11 *= fy
+        r11 += r10
+        e1 -= e0
+        e1 *= fx
+        e1 += e0
+        gxs, gys = r11, e1
+        # ∂(xm, ym)/∂d = −[[a, b], [−b, a]] for the translation d = v·τ + a·τ²/2
+        if isinstance(a, float):
+            ex, ey = gxs, gys
+        else:
+            ex = a * gxs - b * gys
+            ey = b * gxs + a * gys
+        t, t2 = self.tau, self.half_tau2
+        grad = np.array([-np.dot(t, ex), -np.dot(t, ey), -np.dot(t2, ex), -np.dot(t2, ey),
+                         0.0, 0.0])
+        if free > 4:
+            rot = gxs * my
+            rot -= gys * mx
+            zoom = gxs * mx
+            zoom += gys * my
+            grad[4] = np.dot(t, rot) / self.radius
+            grad[5] = -np.dot(t, zoom) / self.radius
+        return g, grad
 
 
 def _subset(n: int, k: int, seed: int) -> np.ndarray:
@@ -121,8 +281,6 @@ def estimate_motion(events: EventStream, exposure: Exposure,
         the motion, with ``confidence`` its contrast gain at full resolution over no motion;
         zero motion with confidence 0 when the window holds fewer than :data:`MIN_EVENTS`.
     """
-    from scipy.optimize import minimize
-
     search = MotionSearch() if search is None else search
     ev = events.within(exposure)
     w, h = events.width, events.height
@@ -143,46 +301,82 @@ def estimate_motion(events: EventStream, exposure: Exposure,
     few = _subset(len(x), max(search.max_events // 4, MIN_EVENTS), search.seed + 1)
     half = _subset(len(x), max(search.max_events // 2, MIN_EVENTS), search.seed + 2)
 
-    def bound(q):
-        q = np.array(q, np.float64)
-        lim_r, lim_z = search.max_rotation * radius, search.max_zoom * radius
-        over = max(abs(q[4]) - lim_r, 0.0) + max(abs(q[5]) - lim_z, 0.0)
-        q[4] = np.clip(q[4], -lim_r, lim_r)
-        q[5] = np.clip(q[5], -lim_z, lim_z)
-        return q, over
+    lim = (search.max_rotation * radius, search.max_zoom * radius)
 
     def refine(level: _Level, q0: np.ndarray, free: int, step: float) -> np.ndarray:
-        def f(qf):
-            q = q0.copy()
-            q[:free] = qf
-            q, over = bound(q)
-            return -level.gain(q) + 0.01 * over
+        return _ascend(level, q0, free, lim, search.iterations, step)
 
-        start = q0[:free]
-        simplex = np.vstack([start] + [start + step * np.eye(free)[i] for i in range(free)])
-        r = minimize(f, start, method="Nelder-Mead",
-                     options={"initial_simplex": simplex, "xatol": 0.02 * step,
-                              "fatol": 1e-5, "maxfev": 60 * free})
-        q = q0.copy()
-        q[:free] = r.x
-        return bound(q)[0]
-
+    # the velocity grid, coarse to fine: every step-8 velocity on an 8× coarser image, then
+    # the step-4 neighbours of the best few on a 4× coarser one
+    vmax = search.max_velocity_px
+    rough = _Level(x[few], y[few], u[few], w, h, 8.0, centre, radius)
     coarse = _Level(x[few], y[few], u[few], w, h, 4.0, centre, radius)
-    vmax, st = search.max_velocity_px, coarse.scale
-    grid = np.arange(-vmax, vmax + 1e-9, st)
-    best = []
-    for vx in grid:
-        for vy in grid:
-            q = np.array([vx, vy, 0, 0, 0, 0], np.float64)
-            best.append((coarse.gain(q), vx, vy))
-    best.sort(reverse=True)
+    grid = np.arange(-vmax, vmax + 1e-9, rough.scale)
+    seeds = sorted(((rough.gain(np.array([vx, vy, 0, 0, 0, 0], np.float64)), vx, vy)
+                    for vx in grid for vy in grid), reverse=True)[:3]
+    near = {(vx + dx, vy + dy) for _, vx, vy in seeds
+            for dx in (-coarse.scale, 0.0, coarse.scale)
+            for dy in (-coarse.scale, 0.0, coarse.scale)}
+    best = sorted(((coarse.gain(np.array([vx, vy, 0, 0, 0, 0], np.float64)), vx, vy)
+                   for vx, vy in sorted(near)), reverse=True)
     candidates = []
     for _, vx, vy in best[:3]:
-        q = refine(coarse, np.array([vx, vy, 0, 0, 0, 0], np.float64), 4, st)
+        q = refine(coarse, np.array([vx, vy, 0, 0, 0, 0], np.float64), 4, coarse.scale)
         candidates.append((coarse.gain(q), q))
     q = max(candidates, key=lambda c: c[0])[1]
     mid = _Level(x[half], y[half], u[half], w, h, 2.0, centre, radius)
-    q = refine(mid, q, 4, 1.0)
+    q = refine(mid, q, 4, 0.5)
     fine = _Level(x, y, u, w, h, 1.0, centre, radius)
-    q = refine(fine, q, 6 if search.rotation_zoom else 4, 0.5)
+    q = refine(fine, q, 6 if search.rotation_zoom else 4, 0.25)
     return _params_to_motion(q, centre, radius, fine.gain(q), n)
+
+
+def _ascend(level: _Level, q0: np.ndarray, free: int, lim: tuple[float, float],
+            iterations: int, step: float, tol: float = 0.03) -> np.ndarray:
+    """Maximise ``level``'s gain over the first ``free`` parameters of ``q0`` by BFGS on the
+    analytic gradient with a backtracking (Armijo) line search, the scaled rotation and zoom
+    kept within ``±lim``; stops after ``iterations`` steps or one shorter than ``tol``
+    (pixels of the parameters)."""
+    hi = np.array([np.inf] * 4 + [lim[0], lim[1]])[:free]
+
+    def f(v: np.ndarray) -> tuple[float, np.ndarray]:
+        q = q0.copy()
+        q[:free] = v
+        g, grad = level.gain_and_gradient(q, free=free)
+        return -g, -grad[:free]
+
+    x = np.clip(q0[:free], -hi, hi)
+    fx, gx = f(x)
+    hinv = None
+    for _ in range(iterations):
+        if hinv is None:
+            # first step: ``step`` along the steepest ascent
+            d = -gx * (step / max(float(np.linalg.norm(gx)), 1e-300))
+        else:
+            d = -hinv @ gx
+        t = 1.0
+        while True:
+            xn = np.clip(x + t * d, -hi, hi)
+            fn, gn = f(xn)
+            if fn <= fx + 1e-4 * float(gx @ (xn - x)) or t < 1e-3:
+                break
+            t *= 0.5
+        if fn >= fx:
+            if hinv is None:
+                break
+            hinv = None  # a poor quasi-Newton direction: start again from steepest ascent
+            continue
+        sv, yv = xn - x, gn - gx
+        sy = float(sv @ yv)
+        if sy > 1e-12:
+            if hinv is None:
+                hinv = np.eye(free) * (sy / float(yv @ yv))
+            rho = 1.0 / sy
+            m = np.eye(free) - rho * np.outer(sv, yv)
+            hinv = m @ hinv @ m.T + rho * np.outer(sv, sv)
+        x, fx, gx = xn, fn, gn
+        if float(np.linalg.norm(sv)) < tol:
+            break
+    q = q0.copy()
+    q[:free] = x
+    return q
