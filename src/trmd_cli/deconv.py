@@ -6,12 +6,16 @@ exposure fraction ``u`` is the middle frame ``L`` sampled where ``m`` carries ea
 to the middle, so ``B ≈ A(L) = (1/J) Σ_j L ∘ m⁻¹(u_j, ·)`` over J evenly spaced instants (at
 most half a pixel of motion apart). ``L`` lives on a *padded* canvas (the sensor plus a margin
 wider than the motion) so that what moved into view near the borders is an unknown, not forced
-to the sensor's edge. Sampling is bilinear (``torch.nn.functional.grid_sample``); the adjoint
-``Aᵀ`` is its exact transpose, taken by autograd.
+to the sensor's edge. Sampling is bilinear; ``A`` is built once as a sparse matrix summing the
+J bilinear stencils (the same weights ``torch.nn.functional.grid_sample`` uses, which still
+warps the result to other instants), so ``A`` and its exact transpose ``Aᵀ`` are one sparse
+product each.
 
 Inverse. ``min ½‖A(L) − B‖² + λ Σ huber_ε(|∇L|)`` by iteratively reweighted least squares:
 each round solves ``(AᵀA + λ DᵀWD) L = AᵀB`` by conjugate gradients with ``W = 1/max(|∇L|, ε)``
-from the previous round (a TV-like prior that keeps edges and does not amplify noise).
+from the previous round (a TV-like prior that keeps edges and does not amplify noise),
+preconditioned by the normal matrix's diagonal (the prior's weights span two orders of
+magnitude and the canvas margin is seen by few instants: Jacobi evens both out).
 
 Guard (:func:`guard_weights`). Per tile, where re-blurring the result does not give back B
 (residual well above B's noise), where the events of the tile are not sharpened by the global
@@ -40,7 +44,8 @@ class DeconvConfig:
         penalty: λ, weight of the Huber gradient prior (intensity per pixel).
         huber: ε, intensity step per pixel below which the prior is quadratic.
         rounds: IRLS rounds (1 = a plain quadratic gradient penalty with weight λ/ε).
-        iterations: conjugate-gradient iterations per round.
+        iterations: preconditioned conjugate-gradient iterations per round (each one product
+            with ``A`` and one with ``Aᵀ``).
         step_px: largest motion between two of the J instants, pixels.
         margin_px: extra canvas around the motion's extent, pixels.
     """

@@ -7,8 +7,12 @@ sensor votes nowhere). The right motion makes that image sharpest. The objective
 variance after a small Gaussian, *divided by* that of the unwarped events (a normalised gain,
 as Shiba et al., ECCV 2022, to guard against event collapse), with the zoom and rotation bounded.
 
-Search: a grid over the velocity on a 4× downsampled image, then Nelder–Mead refinement of
-translation + acceleration on 2× and of all six parameters at full resolution.
+Search: a grid over the velocity (step 8 px per exposure on an 8× downsampled image, then the
+step-4 neighbours of the best three on 4×), then quasi-Newton (BFGS) ascent on the analytic
+gradient of the gain — translation + acceleration from the best three on 4× and on 2×, all six
+parameters at full resolution. The gradient is exact for the bilinear votes: the image's
+derivative ``2/n · g ∗ (g ∗ IWE − μ)`` read back at each event by the derivative of its
+bilinear stencil, chained through the closed-form warp.
 """
 
 from __future__ import annotations
