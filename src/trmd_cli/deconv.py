@@ -425,7 +425,7 @@ class MotionDeblur:
 
 def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: np.ndarray,
                   edi_middle: np.ndarray, hot_mask: np.ndarray | None = None,
-                  config: DeconvConfig | None = None) -> MotionDeblur:
+                  config: DeconvConfig | None = None, motion=None) -> MotionDeblur:
     """Deconvolve ``blurry`` along the events' global motion and blend with EDI per tile.
 
     Args:
@@ -434,20 +434,26 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
         edi_frames: (K, H, W[, 3]) EDI's frames at ``fractions`` (the fallback).
         edi_middle: (H, W[, 3]) EDI's middle frame (the solver's first guess).
         hot_mask: (H, W) bool pixels whose events are ignored.
+        motion: a motion to use instead of the estimate (e.g. the simulator's true path), with
+            its ``confidence`` and ``events`` measured on these events; the guard is the same.
     """
     from .motion import MIN_EVENTS, estimate_motion
 
-    motion = estimate_motion(events, exposure, hot_mask)
+    given = motion is not None
+    if motion is None:
+        motion = estimate_motion(events, exposure, hot_mask)
     h, w = blurry.shape[:2]
     zero = np.zeros((h, w), np.float32)
     if motion.events < MIN_EVENTS:
+        who = "the guard" if given else "motion"
         return MotionDeblur(edi_frames, zero, motion,
-                            (f"only {motion.events} events in the exposure (motion needs ≥ "
+                            (f"only {motion.events} events in the exposure ({who} needs ≥ "
                              f"{MIN_EVENTS}): used EDI",))
     if motion.confidence < 1.05 or motion.max_displacement_px(w, h) < 0.25:
+        said = ("the events are not sharpened by the given motion" if given else
+                "the events show no clear global motion")
         return MotionDeblur(edi_frames, zero, motion,
-                            (f"the events show no clear global motion (contrast gain "
-                             f"{motion.confidence:.2f}): used EDI",))
+                            (f"{said} (contrast gain {motion.confidence:.2f}): used EDI",))
     d = deconvolve(blurry, motion, config, start=edi_middle)
     ev = events.within(exposure)
     x, y = ev.x, ev.y

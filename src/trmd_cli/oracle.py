@@ -42,41 +42,12 @@ def deblur_along(blurry: np.ndarray, events, exposure, fractions, edi_frames: np
     Returns:
         :class:`~trmd_cli.deconv.MotionDeblur` with ``motion`` the motion used.
     """
-    from .deconv import MotionDeblur, deconvolve, guard_weights, tile_gains
-    from .motion import MIN_EVENTS
+    from .deconv import motion_deblur
 
     if isinstance(motion, SampledMotion):
         motion = motion.with_evidence(events, exposure, hot_mask)
-    h, w = blurry.shape[:2]
-    zero = np.zeros((h, w), np.float32)
-    # the same fallbacks as for an estimate: without events the guard could not judge it
-    if motion.events < MIN_EVENTS:
-        return MotionDeblur(edi_frames, zero, motion,
-                            (f"only {motion.events} events in the exposure (the guard needs ≥ "
-                             f"{MIN_EVENTS}): used EDI",))
-    if motion.confidence < 1.05 or motion.max_displacement_px(w, h) < 0.25:
-        return MotionDeblur(edi_frames, zero, motion,
-                            (f"the events are not sharpened by the given motion (contrast gain "
-                             f"{motion.confidence:.2f}): used EDI",))
-    d = deconvolve(blurry, motion, config, start=edi_middle)
-    ev = events.within(exposure)
-    x, y = ev.x, ev.y
-    u = (ev.t - exposure.start_us).astype(np.float64) / exposure.duration_us
-    if hot_mask is not None and hot_mask.any() and len(x):
-        keep = ~hot_mask[y, x]
-        x, y, u = x[keep], y[keep], u[keep]
-    gains = tile_gains(motion, x.astype(np.float64), y.astype(np.float64), u, w, h)
-    wgt = guard_weights(blurry, d.reblurred, motion.confidence, gains, motion.confidence,
-                        middle=d.frames([0.5])[0], edi_middle=edi_middle)
-    deb = d.frames(fractions)
-    ww = wgt[None, ..., None] if deb.ndim == 4 else wgt[None]
-    out = (ww * deb + (1.0 - ww) * edi_frames).astype(np.float32)
-    share = float(wgt.mean())
-    notes: tuple[str, ...] = ()
-    if share < 0.5:
-        notes = (f"the motion explains only {100 * share:.0f} % of the frame: EDI used for "
-                 "the rest",)
-    return MotionDeblur(out, wgt, motion, notes)
+    return motion_deblur(blurry, events, exposure, fractions, edi_frames, edi_middle, hot_mask,
+                         config, motion=motion)
 
 
 class TruePathMethod:
