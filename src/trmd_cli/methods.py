@@ -384,9 +384,16 @@ class MotionMethod:
     summary = ("deconvolution along the events' global motion (contrast maximisation), "
                "guarded by EDI; contrast estimated per frame as EDI's")
 
+    #: put before each of the motion's notes (a given motion says which one it is)
+    note_prefix = ""
+
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
-                 hot_pixels: bool = True) -> None:
+                 hot_pixels: bool = True, motion=None) -> None:
+        """``motion``: a path to deconvolve along instead of the estimate (a
+        :class:`~trmd_cli.motion.SampledMotion`, judged by the guard on each window's events
+        as an estimate is)."""
         self.n = n
+        self.motion = motion
         self._edi = EdiMethod(n, contrast, hot_pixels)
 
     @classmethod
@@ -408,9 +415,12 @@ class MotionMethod:
         # EDI at the instants and at mid-exposure in one pass (one blur integral, not two)
         lat = prep.model.latent(b, np.append(fr, 0.5), prep.contrast)
         edi, mid = lat[:-1], lat[-1]
-        res = motion_deblur(b, events, exposure, fr, edi, mid, prep.hot)
+        given = None if self.motion is None else \
+            self.motion.with_evidence(events, exposure, prep.hot)
+        res = motion_deblur(b, events, exposure, fr, edi, mid, prep.hot, motion=given)
         return Estimate(res.frames, inst, prep.contrast, prep.estimated, prep.reliable,
-                        prep.hot_pixels, prep.note, res.notes)
+                        prep.hot_pixels, prep.note,
+                        tuple(f"{self.note_prefix}{note}" for note in res.notes))
 
     def from_bins(self, blurry, bins, fractions=None) -> Estimate:
         raise InputError("`method='motion'` needs event times to estimate the motion; binned "
