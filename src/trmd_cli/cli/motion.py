@@ -62,6 +62,7 @@ def motion(
     from rich.progress import Progress
 
     from .. import __version__
+    from ..batch import frame_folder_name
     from ..errors import InputError
     from ..motion_views import motion_summary, motion_views
     from ..read.inputs import open_inputs
@@ -106,7 +107,7 @@ def motion(
                                      hot_pixels=hot_pixels)
                 folder = tmp
                 if not ins.single:
-                    folder = tmp / _folder_name(f.name, f.index)
+                    folder = tmp / frame_folder_name(f.name, f.index)
                     folder.mkdir()
                 write_image(folder / "flow.png", flow_picture(views.displacement))
                 write_image(folder / "weight.png", weight_picture(views.weight))
@@ -137,11 +138,6 @@ def _line(name: str, s: dict) -> str:
             f"zoom {100 * s['zoom_log_scale_per_exposure']:.2f} %, pixels travel up to "
             f"{s['start_to_end_px']['max']:.1f} px; confidence {s['confidence']:.2f}, "
             f"deconvolution used on {100 * s['deconvolution_share']:.0f} % of the frame")
-
-
-def _folder_name(name: str, index: int) -> str:
-    safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name).strip(".")
-    return safe or f"{index:06d}"
 
 
 def register(app: typer.Typer) -> None:
