@@ -38,7 +38,6 @@ machine.
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import subprocess
 import sys
@@ -49,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import machine  # noqa: E402
+from _common import PEAK_CHILD, machine, peak_env, run_peak  # noqa: E402
 
 W, H = 240, 180
 EXPOSURE_US = 10_000
@@ -98,37 +97,9 @@ def vm_rss_mib(pid: int) -> float | None:
     return None
 
 
-#: runs `trmd` and, on the way out, writes this process's VmHWM (kB) to $TRMD_BENCH_HWM
-CHILD = """
-import atexit, os, runpy, sys
-
-def _hwm():
-    for line in open("/proc/self/status"):
-        if line.startswith("VmHWM:"):
-            with open(os.environ["TRMD_BENCH_HWM"], "w") as fh:
-                fh.write(line.split()[1])
-
-atexit.register(_hwm)
-sys.argv = ["trmd", *sys.argv[1:]]
-runpy.run_module("trmd_cli", run_name="__main__")
-"""
-
-
 def run_trmd(args: list[str], hwm: Path, src: Path | None = None) -> tuple[float, float]:
     """``trmd ARGS`` in a child: (peak RSS MiB, wall s). ``src``: the trmd sources to run."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
-    env["TRMD_BENCH_HWM"] = str(hwm)
-    if src is not None:
-        env["PYTHONPATH"] = str(src)
-    t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", CHILD, *args], capture_output=True, text=True,
-                          env=env)
-    wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        raise SystemExit(f"trmd {' '.join(args)} failed (exit {proc.returncode}): "
-                         f"{proc.stderr.strip()}")
-    peak = int(hwm.read_text()) / 1024
-    hwm.unlink()
+    peak, wall, _ = run_peak(args, hwm, src)
     return peak, wall
 
 
@@ -205,9 +176,8 @@ def bench_readers(args, work: Path) -> None:
 def run_deblur(rec: Path, out: Path, contrast: str) -> dict:
     """Run the CLI in a child; its peak RSS (MiB), RSS samples over time, wall time."""
     hwm = out.with_name(out.name + ".hwm")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
-    env["TRMD_BENCH_HWM"] = str(hwm)
-    cmd = [sys.executable, "-c", CHILD, "deblur", str(rec), "-o", str(out), "--method", "edi",
+    env = peak_env(hwm)
+    cmd = [sys.executable, "-c", PEAK_CHILD, "deblur", str(rec), "-o", str(out), "--method", "edi",
            "--contrast", contrast]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)

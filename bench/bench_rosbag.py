@@ -26,10 +26,8 @@ third, and do not grow with the bag. Nothing is written inside the repository.
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import struct
-import subprocess
 import sys
 import tempfile
 import time
@@ -38,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import machine  # noqa: E402
+from _common import machine, run_peak  # noqa: E402
 
 W, H = 240, 180
 PER_MESSAGE = 50_000
@@ -150,24 +148,6 @@ def write_bag(path: Path, events: int, ros2: bool, seed: int = 0) -> dict:
     return {"frames": frames, "bytes": size}
 
 
-#: runs trmd, or a snippet, and writes this process's VmHWM (kB) to $TRMD_BENCH_HWM on exit
-CHILD = """
-import atexit, os, runpy, sys
-
-def _hwm():
-    for line in open("/proc/self/status"):
-        if line.startswith("VmHWM:"):
-            with open(os.environ["TRMD_BENCH_HWM"], "w") as fh:
-                fh.write(line.split()[1])
-
-atexit.register(_hwm)
-if sys.argv[1] == "--snippet":
-    exec(sys.argv[2])
-else:
-    sys.argv = ["trmd", *sys.argv[1:]]
-    runpy.run_module("trmd_cli", run_name="__main__")
-"""
-
 WINDOWS = """
 from trmd_cli.read import ReadOptions, open_events
 with open_events({bag!r}, ReadOptions(stamp="middle")) as rec:
@@ -184,19 +164,8 @@ with open_events({bag!r}) as rec:
 
 
 def run(args: list[str], work: Path) -> dict:
-    hwm = work / "hwm"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
-    env["TRMD_BENCH_HWM"] = str(hwm)
-    t0 = time.perf_counter()
-    r = subprocess.run([sys.executable, "-c", CHILD, *args], capture_output=True, text=True,
-                       env=env)
-    wall = time.perf_counter() - t0
-    if r.returncode != 0:
-        raise SystemExit(f"{' '.join(args)[:60]} failed (exit {r.returncode}): "
-                         f"{r.stderr.strip()}")
-    peak = int(hwm.read_text()) / 1024
-    hwm.unlink()
-    return {"peak_mib": peak, "wall_s": wall, "stdout": r.stdout.strip()}
+    peak, wall, stdout = run_peak(args, work / "hwm")
+    return {"peak_mib": peak, "wall_s": wall, "stdout": stdout}
 
 
 def main() -> None:
