@@ -6,6 +6,12 @@ share. Its work is the list of (recording, frame) units in order; a process of `
 every ``world``-th unit from its ``rank`` (:meth:`Plan.share`), so the shares are disjoint,
 deterministic and need no talking between processes while they run.
 
+The machinery — the stage, local worker processes, torchrun ranks, resuming — knows a plan only
+by its units, their :meth:`~Plan.phases` (a phase starts when every process has finished the
+one before), where each unit's folder goes (:meth:`~Plan.place`) and how a share of them is
+done (:meth:`~Plan.run`); ``trmd hfr`` runs through it with a plan of its own
+(:mod:`trmd_cli.hfr_batch`).
+
 Frames land in a persistent *stage* beside the output, never in the output itself
 (:class:`Stage`)::
 
@@ -30,10 +36,10 @@ import json
 import os
 import re
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 from .errors import InputError, TrmdError
 
@@ -44,8 +50,12 @@ if TYPE_CHECKING:  # not at run time: the CLI imports this module before it know
 __all__ = [
     "Item", "Settings", "Plan", "Stage", "ShareReport", "Ranks", "ShardError", "run_meta",
     "recordings_in", "make_plan", "prepare_stage", "run_share", "finish", "frame_folder_name",
-    "worker_threads", "ranks_from_env", "RECORDING_SUFFIXES",
+    "worker_threads", "ranks_from_env", "RECORDING_SUFFIXES", "Unit", "open_item", "swap_in",
+    "run_pool", "run_plan", "todo", "agreed", "joined", "recording_folders",
 ]
+
+#: one piece of a run's work: (recording, frame) for deblur; plans of their own may add a tag
+Unit = tuple
 
 #: file types a folder of recordings is searched for (each may hold frames and events);
 #: recording folders (RPG, ROS 2) inside it count too
@@ -96,30 +106,53 @@ class Item:
 
 @dataclass(frozen=True)
 class Plan:
-    """The recordings of a run and how to deblur them; every process builds the same one."""
+    """The recordings of a run and how to deblur them; every process builds the same one.
+
+    ``settings`` is any frozen dataclass with a ``config`` (a ``MethodConfig``) and ``read``;
+    a plan of another command subclasses this one and says how its units are done."""
 
     items: tuple[Item, ...]
     settings: Settings
+    #: the command whose stage this is: a resume by another command is refused
+    command: ClassVar[str] = "deblur"
 
-    def units(self) -> list[tuple[int, int]]:
+    def units(self) -> list[Unit]:
         """Every (recording, frame position) of the run, in output order."""
         return [(i, k) for i, item in enumerate(self.items) for k in range(item.frames)]
 
+    def phases(self) -> list[list[Unit]]:
+        """The units in the order their phases run: each one starts when every process has
+        finished the one before (deblur: one phase)."""
+        return [self.units()]
+
+    def place(self, unit: Unit) -> Path:
+        """The folder, relative to the stage, that holds ``unit``'s folder."""
+        return Path("out") / self.items[unit[0]].folder
+
+    def places(self) -> list[Path]:
+        """Every folder :meth:`place` names, relative to the stage (made by ``prepare_stage``)."""
+        return [Path("out") / item.folder for item in self.items]
+
+    def run(self, stage: Stage, share: Sequence[Unit],
+            tick: Callable[[], None] = lambda: None) -> ShareReport:
+        """Do the units of ``share`` that are not complete yet (in this process)."""
+        return run_share(self, stage, share, tick)
+
     def share(self, rank: int, world: int,
-              units: Sequence[tuple[int, int]] | None = None) -> list[tuple[int, int]]:
+              units: Sequence[Unit] | None = None) -> list[Unit]:
         """Unit u (of ``units``, default all) goes to process u mod ``world``."""
         units = self.units() if units is None else units
         return list(units[rank::world])
 
     def fingerprint(self) -> dict:
-        """What must match for a resume: the inputs, frames, meta heads and every setting that
-        changes a written byte (not device or threads)."""
-        s = self.settings
-        config = {k: v for k, v in asdict(s.config).items() if k not in ("device", "threads")}
-        doc = {"items": [{"inputs": list(it.inputs), "folder": it.folder, "frames": it.frames,
-                          "meta": it.meta} for it in self.items],
-               "config": config, "read": asdict(s.read), "exposure": s.exposure,
-               "offset_us": s.offset_us, "bit_depth": s.bit_depth, "compare": s.compare}
+        """What must match for a resume: the command, the inputs, frames, meta heads and every
+        setting that changes a written byte (not device or threads)."""
+        settings = asdict(self.settings)
+        settings["config"] = {k: v for k, v in settings["config"].items()
+                              if k not in ("device", "threads")}
+        doc = {"command": self.command,
+               "items": [{"inputs": list(it.inputs), "folder": it.folder, "frames": it.frames,
+                          "meta": it.meta} for it in self.items], **settings}
         return json.loads(json.dumps(doc, default=_plain))
 
 
@@ -203,6 +236,32 @@ def recordings_in(inputs: Sequence[Path]) -> list[Path] | None:
     return None
 
 
+def recording_folders(recordings: Sequence[Path] | None) -> list[str]:
+    """Each recording's name in the output of a run on several (``[""]`` for one input): a
+    file's stem, a recording folder's name."""
+    if recordings is None:
+        return [""]
+    return [p.stem if p.is_file() else p.name for p in recordings]
+
+
+def check_unique(folders: Sequence[str]) -> None:
+    """Raises InputError: two recordings would write the same name."""
+    if len(set(folders)) != len(folders):
+        dup = next(f for f in folders if folders.count(f) > 1)
+        raise InputError(f"two recordings would both write {dup!r} in the output",
+                         hint="rename one, or run them separately")
+
+
+def check_shareable(ins, path) -> None:
+    """Raises InputError: ``ins`` is one blurry image (nothing to share out), or no frame."""
+    if ins.single:
+        raise InputError("one blurry image is one frame: there is nothing to share "
+                         "out or resume", path=path,
+                         hint="run it without --jobs / --resume / torchrun")
+    if len(ins.source) == 0:
+        raise InputError("no frame to deblur", path=path, hint="check the inputs")
+
+
 def make_plan(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
               settings: Settings, warn: Callable[[str], None] = lambda _: None) -> Plan:
     """Open every recording once to count its frames and settle its meta.json head.
@@ -218,10 +277,7 @@ def make_plan(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
     from .methods import make_method
     from .read.inputs import open_inputs
 
-    if len(set(folders)) != len(folders):
-        dup = next(f for f in folders if folders.count(f) > 1)
-        raise InputError(f"two recordings would both write the folder {dup!r}",
-                         hint="rename one, or run them separately")
+    check_unique(folders)
     s = settings
     est = None
     items = []
@@ -229,12 +285,7 @@ def make_plan(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
         with open_inputs(list(paths), s.read, exposure=s.exposure, offset_us=s.offset_us) as ins:
             for w in ins.warnings:
                 warn(w)
-            if ins.single:
-                raise InputError("one blurry image is one frame: there is nothing to share "
-                                 "out or resume", path=paths[0],
-                                 hint="run it without --jobs / --resume / torchrun")
-            if len(ins.source) == 0:
-                raise InputError("no frame to deblur", path=paths[0], hint="check the inputs")
+            check_shareable(ins, paths[0])
             est = est or make_method(s.config)  # its name, N, weights hash, precision
             items.append(Item(tuple(str(p) for p in paths), folder, len(ins.source),
                               run_meta(ins, est, s.config, s.offset_us, s.bit_depth)))
@@ -251,13 +302,14 @@ class Stage:
         self.done = self.root / "done"
         self.plan_file = self.root / "plan.json"
 
-    def record(self, unit: tuple[int, int]) -> Path:
-        return self.done / f"{unit[0]}-{unit[1]}.json"
+    def record(self, unit: Unit) -> Path:
+        return self.done / ("-".join(str(part) for part in unit) + ".json")
 
-    def folder(self, plan: Plan, unit: tuple[int, int]) -> Path:
-        return self.out / plan.items[unit[0]].folder
+    def folder(self, plan: Plan, unit: Unit) -> Path:
+        """The folder that holds ``unit``'s folder (named in its record)."""
+        return self.root / plan.place(unit)
 
-    def finished(self, plan: Plan, unit: tuple[int, int]) -> dict | None:
+    def finished(self, plan: Plan, unit: Unit) -> dict | None:
         """The record of a complete unit (its folder and meta part), or None."""
         try:
             rec = json.loads(self.record(unit).read_text())
@@ -268,9 +320,10 @@ class Stage:
             return None
         return rec
 
-    def pending(self, plan: Plan) -> list[tuple[int, int]]:
-        """The units not complete yet, in order."""
-        return [u for u in plan.units() if self.finished(plan, u) is None]
+    def pending(self, plan: Plan, units: Sequence[Unit] | None = None) -> list[Unit]:
+        """The units (of ``units``, default all) not complete yet, in order."""
+        units = plan.units() if units is None else units
+        return [u for u in units if self.finished(plan, u) is None]
 
 
 def prepare_stage(plan: Plan, output: str | Path, resume: bool) -> tuple[Stage, int]:
@@ -304,8 +357,9 @@ def prepare_stage(plan: Plan, output: str | Path, resume: bool) -> tuple[Stage, 
     if stage.root.exists():
         shutil.rmtree(stage.root)
     stage.done.mkdir(parents=True)
-    for item in plan.items:
-        (stage.out / item.folder).mkdir(parents=True, exist_ok=True)
+    stage.out.mkdir()
+    for place in plan.places():
+        (stage.root / place).mkdir(parents=True, exist_ok=True)
     write_json(stage.plan_file, plan.fingerprint())  # last: the stage is then usable
     return stage, 0
 
@@ -325,6 +379,34 @@ class ShareReport:
     contrast_notes: tuple[tuple[tuple[int, int], str, str | None, bool], ...] = ()
 
 
+    @staticmethod
+    def merged(reports: Sequence[ShareReport]) -> ShareReport:
+        """One report of several (one process's phases), in their order."""
+        return ShareReport(sum(r.frames for r in reports),
+                           tuple(w for r in reports for w in r.warnings),
+                           tuple(n for r in reports for n in r.contrast_notes))
+
+
+@contextlib.contextmanager
+def open_item(item: Item, settings) -> Iterator:
+    """The inputs of one recording of a plan (``open_inputs``' ``Inputs``), checked to hold
+    the frames they held when the plan was made.
+
+    Raises:
+        InputError: the frame count changed (the input was changed during the run).
+    """
+    from .read.inputs import open_inputs
+
+    s = settings
+    with open_inputs(list(item.inputs), s.read, exposure=s.exposure,
+                     offset_us=s.offset_us) as ins:
+        if len(ins.source) != item.frames:
+            raise InputError(f"the input now holds {len(ins.source)} frames, not "
+                             f"{item.frames}", path=item.inputs[0],
+                             hint="was it changed during the run?")
+        yield ins
+
+
 def run_share(plan: Plan, stage: Stage, share: Sequence[tuple[int, int]],
               tick: Callable[[], None] = lambda: None) -> ShareReport:
     """Deblur the units of ``share`` that are not complete yet, each frame folder renamed into
@@ -336,7 +418,6 @@ def run_share(plan: Plan, stage: Stage, share: Sequence[tuple[int, int]],
     from .deblur import deblur_frames
     from .methods import make_method
     from .overlap import ahead
-    from .read.inputs import open_inputs
     from .write import atomic_dir, write_json, write_result_folder
 
     s = plan.settings
@@ -350,12 +431,7 @@ def run_share(plan: Plan, stage: Stage, share: Sequence[tuple[int, int]],
         if not positions:
             continue
         est = est or make_method(s.config)
-        with open_inputs(list(item.inputs), s.read, exposure=s.exposure,
-                         offset_us=s.offset_us) as ins:
-            if len(ins.source) != item.frames:
-                raise InputError(f"the input now holds {len(ins.source)} frames, not "
-                                 f"{item.frames}", path=item.inputs[0],
-                                 hint="was it changed during the run?")
+        with open_item(item, s) as ins:
             for k, res in zip(positions, ahead(deblur_frames(ins.source.subset(positions), est)),
                               strict=True):
                 warnings.extend(res.warnings)
@@ -375,32 +451,18 @@ def run_share(plan: Plan, stage: Stage, share: Sequence[tuple[int, int]],
 _TEMP = re.compile(r"^\..*\.trmd-\d+-.*\.tmp")
 
 
-def finish(plan: Plan, stage: Stage, overwrite: bool) -> list[dict]:
-    """Write each recording's meta.json from the records and swap the stage in as the output.
+def sweep_temps(folder: Path) -> None:
+    """Remove what atomic writers of killed processes left in ``folder``: it must not ship."""
+    for p in folder.iterdir():
+        if _TEMP.match(p.name):
+            shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
 
-    Returns:
-        every frame's meta part, in output order.
-    Raises:
-        ShardError: a unit is not complete (a process did not finish its share).
-    """
+
+def swap_in(stage: Stage) -> None:
+    """Put the stage's ``out/`` where the output goes (replacing a previous output only once it
+    is in place), then remove the stage."""
     from .signals import deferred, raise_if_received
-    from .write import write_json
 
-    summary: list[dict] = []
-    for i, item in enumerate(plan.items):
-        infos = []
-        for k in range(item.frames):
-            rec = stage.finished(plan, (i, k))
-            if rec is None:
-                raise ShardError(f"frame {k} of {item.inputs[0]} was not written; rerun with "
-                                 "--resume to finish it")
-            infos.append(rec["info"])
-        folder = stage.out / item.folder
-        for p in folder.iterdir():  # temporaries of killed processes must not ship
-            if _TEMP.match(p.name):
-                shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
-        write_json(folder / "meta.json", {**item.meta, "frames": infos})
-        summary.extend(infos)
     output = stage.output
     raise_if_received()
     with deferred():  # between the renames an interrupt would leave no output at all
@@ -416,6 +478,32 @@ def finish(plan: Plan, stage: Stage, overwrite: bool) -> list[dict]:
         else:
             os.replace(stage.out, output)
     shutil.rmtree(stage.root, ignore_errors=True)
+
+
+def finish(plan: Plan, stage: Stage, overwrite: bool) -> list[dict]:
+    """Write each recording's meta.json from the records and swap the stage in as the output.
+
+    Returns:
+        every frame's meta part, in output order.
+    Raises:
+        ShardError: a unit is not complete (a process did not finish its share).
+    """
+    from .write import write_json
+
+    summary: list[dict] = []
+    for i, item in enumerate(plan.items):
+        infos = []
+        for k in range(item.frames):
+            rec = stage.finished(plan, (i, k))
+            if rec is None:
+                raise ShardError(f"frame {k} of {item.inputs[0]} was not written; rerun with "
+                                 "--resume to finish it")
+            infos.append(rec["info"])
+        folder = stage.out / item.folder
+        sweep_temps(folder)
+        write_json(folder / "meta.json", {**item.meta, "frames": infos})
+        summary.extend(infos)
+    swap_in(stage)
     return summary
 
 
@@ -522,10 +610,11 @@ def agreed(ranks: Ranks, step: Callable[[], object]):
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
-def _worker(plan: Plan, output: str, share: list[tuple[int, int]], threads: int,
-            queue) -> None:
-    """A local worker process: its share, then one message ("done", report) or ("error",
-    line, exit code); a ("tick",) after every frame."""
+def _worker(plan: Plan, output: str, shares: list[list[Unit]], threads: int, queue,
+            barrier) -> None:
+    """A local worker process: its share of each phase (between phases, ``barrier``: every
+    worker finished the one before), then one message ("done", report) or ("error", line, exit
+    code); a ("tick",) after every unit."""
     import signal
 
     from .signals import handled
@@ -536,8 +625,12 @@ def _worker(plan: Plan, output: str, share: list[tuple[int, int]], threads: int,
             # and stops the workers with SIGTERM, which unwinds their writers here
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             stage = Stage(output)
-            report = run_share(plan, stage, share, tick=lambda: queue.put(("tick",)))
-        queue.put(("done", report))
+            reports = []
+            for i, share in enumerate(shares):
+                if i:
+                    barrier.wait()
+                reports.append(plan.run(stage, share, tick=lambda: queue.put(("tick",))))
+        queue.put(("done", ShareReport.merged(reports)))
     except TrmdError as e:
         queue.put(("error", str(e), e.exit_code))
     except KeyboardInterrupt:
@@ -546,11 +639,15 @@ def _worker(plan: Plan, output: str, share: list[tuple[int, int]], threads: int,
         queue.put(("error", f"unexpected {type(e).__name__}: {e}", 1))
 
 
-def run_pool(plan: Plan, stage: Stage, units: Sequence[tuple[int, int]], jobs: int,
-             threads: int, tick: Callable[[], None] = lambda: None) -> list[ShareReport]:
-    """``units`` deblurred by ``jobs`` worker processes (spawned: no state copied from this
-    one), worker w taking every jobs-th unit from w; each with ``threads`` threads.
+def run_pool(plan: Plan, stage: Stage, units: Sequence[Unit], jobs: int,
+             threads: int, tick: Callable[[], None] = lambda: None, *,
+             phases: Sequence[Sequence[Unit]] | None = None) -> list[ShareReport]:
+    """``units`` done by ``jobs`` worker processes (spawned: no state copied from this one),
+    worker w taking every jobs-th unit from w; each with ``threads`` threads.
 
+    Args:
+        phases: instead of ``units``: the units of each phase, in order; the same workers do
+            them all, each phase starting once every worker has finished the one before.
     Raises:
         ShardError: a worker failed (its line) or died; the others are stopped first.
         KeyboardInterrupt: on Ctrl-C / SIGTERM, once the workers are stopped.
@@ -559,22 +656,24 @@ def run_pool(plan: Plan, stage: Stage, units: Sequence[tuple[int, int]], jobs: i
     import queue as queues
     from dataclasses import replace
 
+    phases = [list(units)] if phases is None else [list(p) for p in phases]
     ctx = mp.get_context("spawn")
     messages = ctx.Queue()
     plan = replace(plan, settings=replace(plan.settings, config=replace(
         plan.settings.config, threads=threads)))
-    shares = [list(units[w::jobs]) for w in range(jobs)]
+    shares = [[phase[w::jobs] for phase in phases] for w in range(jobs)]
+    shares = [s for s in shares if any(s)]
+    barrier = ctx.Barrier(len(shares)) if len(phases) > 1 and shares else None
     procs = []
     saved = {k: os.environ.get(k) for k in _THREAD_VARS}
     try:
         # the children copy this environment when they start
         os.environ.update({k: str(threads) for k in _THREAD_VARS if saved[k] is None})
         for share in shares:
-            if share:
-                p = ctx.Process(target=_worker, args=(plan, str(stage.output), share, threads,
-                                                      messages), daemon=True)
-                p.start()
-                procs.append(p)
+            p = ctx.Process(target=_worker, args=(plan, str(stage.output), share, threads,
+                                                  messages, barrier), daemon=True)
+            p.start()
+            procs.append(p)
     finally:
         for k, v in saved.items():
             if v is None:
@@ -603,3 +702,31 @@ def run_pool(plan: Plan, stage: Stage, units: Sequence[tuple[int, int]], jobs: i
         for p in procs:
             p.join()
     return reports
+
+
+def todo(plan: Plan, stage: Stage, ranks: Ranks) -> list[list[Unit]]:
+    """What this process does of each phase: under torchrun its rank's share of the phase (cut
+    from all its units, so every rank cuts the same), less what is complete; else every unit
+    not complete yet."""
+    if ranks.enabled:
+        return [stage.pending(plan, plan.share(ranks.rank, ranks.world, phase))
+                for phase in plan.phases()]
+    return [stage.pending(plan, phase) for phase in plan.phases()]
+
+
+def run_plan(plan: Plan, stage: Stage, ranks: Ranks, work: Sequence[Sequence[Unit]], *,
+             jobs: int = 1, threads: int = 1,
+             tick: Callable[[], None] = lambda: None) -> list[ShareReport]:
+    """Do ``work`` (from :func:`todo`) phase by phase: as this rank of a torchrun launch
+    (the ranks meet after every phase, and all stop when one fails), in ``jobs`` local
+    workers, or here.
+
+    Raises:
+        ShardError: another rank or a worker failed. TrmdError / KeyboardInterrupt: here.
+    """
+    if ranks.enabled:
+        return [agreed(ranks, lambda share=share: plan.run(stage, share, tick))
+                for share in work]
+    if jobs > 1 and sum(len(phase) for phase in work) > 1:
+        return run_pool(plan, stage, [], jobs, threads, tick, phases=work)
+    return [plan.run(stage, share, tick) for share in work]

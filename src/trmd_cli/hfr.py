@@ -4,6 +4,11 @@ Each exposure contributes its latent frames (:func:`trmd_cli.deblur.deblur_frame
 before the next exposure is filled at the same time step from the events in it. Binned events
 have no event times: their stream is the exposures' frames in order, each at its fraction of
 its exposure, with no gap filling.
+
+A gap needs only the :class:`Edge` of the exposure on either side of it (its end frames,
+instants and c), so the stream can also be made in pieces — each exposure's frames
+(:func:`exposure_frames`), each gap's (:func:`gap_frames`) — by different processes
+(:mod:`trmd_cli.hfr_batch`), with the same frames as :func:`hfr_stream`.
 """
 
 from __future__ import annotations
@@ -19,7 +24,12 @@ from .edi import propagate
 from .errors import InputError
 from .events import Exposure
 
-__all__ = ["HfrFrame", "hfr_stream", "check_time_order"]
+#: what a run says when some gap got fewer frames than real time would need
+CAPPED_NOTE = ("some gaps between exposures are long: they were filled with fewer frames than "
+               "real time would need (raise `max_gap_frames`)")
+
+__all__ = ["CAPPED_NOTE", "HfrFrame", "Edge", "hfr_stream", "exposure_frames", "gap_frames",
+           "timestamp_row", "check_time_order"]
 
 
 def check_time_order(exposures: Sequence[Exposure], path: str | Path | None = None) -> None:
@@ -54,6 +64,63 @@ class HfrFrame:
     fraction: float | None = None
 
 
+def timestamp_row(frame: HfrFrame) -> str:
+    """A frame's line in timestamps.txt after its file name: its time (µs, 3 decimals; binned
+    events: its fraction of the exposure), kind and source."""
+    from .write import fmt_fraction
+
+    when = fmt_fraction(frame.fraction) if frame.t_us is None else f"{frame.t_us:.3f}"
+    return f"{when} {frame.kind} {frame.source}"
+
+
+@dataclass(frozen=True, eq=False)
+class Edge:
+    """What filling the gap beside an exposure needs of it.
+
+    Attributes:
+        name: its frame's name. first, last: (H, W[, 3]) float32 latent frames at its first and
+            last instants. first_us, last_us: those instants, µs. count: its frames in the
+            stream (its time step is ``duration_us / (count − 1)``). duration_us: its exposure,
+            µs. contrast: its c, or None (passed through, or a method that settled none).
+    """
+
+    name: str
+    first: np.ndarray
+    last: np.ndarray
+    first_us: float
+    last_us: float
+    count: int
+    duration_us: int
+    contrast: float | None
+
+    @classmethod
+    def of(cls, res: FrameResult) -> Edge:
+        """The edge of a deblurred exposure (not binned: binned results have no times)."""
+        return cls(res.name, res.frames[0], res.frames[-1], float(res.instants_us[0]),
+                   float(res.instants_us[-1]), len(res.instants_us), res.exposure.duration_us,
+                   res.estimate.contrast)
+
+
+def exposure_frames(res: FrameResult) -> Iterator[HfrFrame]:
+    """An exposure's own frames of the stream, in time order."""
+    if res.binned:
+        for f, img in zip(res.instants_us, res.frames, strict=True):
+            yield HfrFrame(None, img, "exposure", res.name, float(f))
+        return
+    for t, img in zip(res.instants_us, res.frames, strict=True):
+        yield HfrFrame(float(t), img, "exposure", res.name)
+
+
+def gap_frames(a: Edge, b: Edge, recording=None, *, max_gap_frames: int | None = None,
+               contrast: float | None = None) -> tuple[list[HfrFrame], bool]:
+    """The frames filling the gap between consecutive exposures ``a`` and ``b`` (see
+    :func:`hfr_stream`), and whether there were fewer than real time needs (the gap is longer
+    than ``max_gap_frames`` steps)."""
+    frames = list(_gap_frames(a, b, recording, max_gap_frames, contrast))
+    capped = bool(frames) and frames[0] is None
+    return (frames[1:] if capped else frames), capped
+
+
 def hfr_stream(results: Iterable[FrameResult], recording=None, *, fill_gaps: bool = True,
                max_gap_frames: int | None = None, contrast: float | None = None,
                notes: list[str] | None = None) -> Iterator[HfrFrame]:
@@ -75,35 +142,32 @@ def hfr_stream(results: Iterable[FrameResult], recording=None, *, fill_gaps: boo
         contrast: c for the gaps when a result has none (TRMD without in-between frames).
         notes: list that receives one-time remarks for the user.
     """
-    prev: FrameResult | None = None
+    prev: Edge | None = None
     capped = False
     for res in results:
         if res.binned:
-            for f, img in zip(res.instants_us, res.frames, strict=True):
-                yield HfrFrame(None, img, "exposure", res.name, float(f))
+            yield from exposure_frames(res)
             prev = None
             continue
+        edge = Edge.of(res)
         if prev is not None and fill_gaps:
-            gap = list(_gap_frames(prev, res, recording, max_gap_frames, contrast))
-            if gap and gap[0] is None:
-                capped = True
-                gap = gap[1:]
+            gap, short = gap_frames(prev, edge, recording, max_gap_frames=max_gap_frames,
+                                    contrast=contrast)
+            capped = capped or short
             yield from gap
-        for t, img in zip(res.instants_us, res.frames, strict=True):
-            yield HfrFrame(float(t), img, "exposure", res.name)
-        prev = res
+        yield from exposure_frames(res)
+        prev = edge
     if capped and notes is not None:
-        notes.append("some gaps between exposures are long: they were filled with fewer "
-                     "frames than real time would need (raise `max_gap_frames`)")
+        notes.append(CAPPED_NOTE)
 
 
-def _gap_frames(a: FrameResult, b: FrameResult, recording, max_frames: int | None,
+def _gap_frames(a: Edge, b: Edge, recording, max_frames: int | None,
                 contrast: float | None):
-    t0, t1 = float(a.instants_us[-1]), float(b.instants_us[0])
+    t0, t1 = a.last_us, b.first_us
     if t1 <= t0:
         return
-    k = len(a.instants_us)
-    step = (a.exposure.duration_us / (k - 1)) if k > 1 else float(a.exposure.duration_us)
+    k = a.count
+    step = (a.duration_us / (k - 1)) if k > 1 else float(a.duration_us)
     count = int(np.floor((t1 - t0) / step - 0.5))
     if count < 1:
         return
@@ -112,9 +176,9 @@ def _gap_frames(a: FrameResult, b: FrameResult, recording, max_frames: int | Non
         count = cap
         yield None  # tells the caller the gap was compressed
     times = t0 + (np.arange(1, count + 1)) * ((t1 - t0) / (count + 1))
-    fa, fb = a.frames[-1], b.frames[0]
-    ca = a.estimate.contrast or b.estimate.contrast or contrast
-    cb = b.estimate.contrast or a.estimate.contrast or contrast
+    fa, fb = a.last, b.first
+    ca = a.contrast or b.contrast or contrast
+    cb = b.contrast or a.contrast or contrast
     ev = None
     if recording is not None and ca and cb:
         ev = recording.events(t0, t1 + 1)

@@ -4,23 +4,31 @@
     trmd hfr RECORDING.aedat4|.h5 -o slowmo.gif
     trmd hfr IMAGES_DIR EVENTS|EVENTS_DIR -o frames/
     trmd hfr IMAGES_DIR BINS_FILE -o frames/
+    trmd hfr RECORDINGS_DIR -o OUT/ --jobs 4 [--format mp4]   # OUT/<recording>/ (or .mp4) each
 
 Each exposure gives ``--per-exposure K`` frames (default 2N+1, ends included); the gaps between
 exposures are filled at the same time step from the events (forward from one exposure, backward
 from the next, cross-faded), so the video is continuous. ``--fps`` is only the playback rate.
 Binned events have no event times: the stream is the exposures' 2N+1 frames in order, without
 gap filling, and timestamps.txt gives each frame's fraction of its exposure.
+
+With ``--jobs``, torchrun, ``--resume`` or several recordings the run goes through a stage beside
+the output (:mod:`trmd_cli.hfr_batch`): exposures, then the gaps, shared out among the processes;
+one process numbers the frames and writes each output at the end, equal file for file to a run
+in one process.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
+from ..errors import TrmdError
 from .boundary import err, guarded, progress_enabled, warn
 from .deblur import (
     BitDepth,
@@ -30,7 +38,6 @@ from .deblur import (
     NOpt,
     TimeOffset,
     Weights,
-    binned_meta,
     method_config,
 )
 from .options import (
@@ -49,6 +56,22 @@ from .options import (
     parse_duration_us,
     read_options,
 )
+
+Jobs = Annotated[int, typer.Option(
+    "--jobs", "-j", help="Worker processes on this machine: the exposures are shared out among "
+    "them, then the gaps between exposures (torch threads per worker: the cores shared out, "
+    "unless --threads). Across machines, launch the command with torchrun instead: each rank "
+    "takes exposures rank, rank + world, …, then the gaps alike; rank 0 writes the output once "
+    "every rank is done.")]
+Resume = Annotated[bool, typer.Option(
+    "--resume", help="Continue an unfinished run of this output (interrupted, or a rank that "
+    "failed): the exposures and gaps already complete are kept, the rest made. Runs with "
+    "--jobs, torchrun, several recordings or --resume keep them in .OUT.trmd-partial beside -o "
+    "until the output is written whole.")]
+Format = Annotated[str | None, typer.Option(
+    "--format", help="What each recording becomes in the -o folder when there are several: "
+    "frames (a folder of PNGs, the default), mp4 or gif. With one input the suffix of -o says "
+    "it.", show_default=False)]
 
 
 def hfr(
@@ -87,14 +110,24 @@ def hfr(
     stamp: Stamp = None,
     topics: Topics = None,
     overwrite: Overwrite = False,
+    jobs: Jobs = 1,
+    resume: Resume = False,
+    fmt: Format = None,
 ) -> None:
-    """High-frame-rate video: every exposure's latent frames plus the gaps, in time order."""
+    """High-frame-rate video: every exposure's latent frames plus the gaps, in time order.
+
+    Several recordings (REC1 REC2 …, or a folder of .h5/.aedat4/.aedat/.bag files and recording
+    folders) give one output each in the -o folder, named after the recording. Runs that share
+    the work out (--jobs, torchrun) or may be resumed keep the finished exposures and gaps in
+    .OUT.trmd-partial beside -o meanwhile; the output equals a run in one process file for
+    file."""
     from rich.progress import Progress
 
-    from .. import __version__
+    from ..batch import ranks_from_env, recordings_in
     from ..deblur import ContrastNotes, binned_note, deblur_frames
     from ..errors import InputError
-    from ..hfr import check_time_order, hfr_stream
+    from ..hfr import check_time_order, hfr_stream, timestamp_row
+    from ..hfr_batch import OUTPUT_KINDS, hfr_meta, timestamps_header
     from ..methods import make_method
     from ..overlap import ahead
     from ..read.inputs import open_inputs
@@ -103,13 +136,20 @@ def hfr(
         atomic_dir,
         check_output,
         clipped_fraction,
-        clipped_message,
-        fmt_fraction,
         write_image,
         write_json,
         write_text,
     )
 
+    # every option is checked before any file is opened or written
+    if jobs < 1:
+        raise InputError(f"--jobs must be at least 1, got {jobs}",
+                         hint="e.g. --jobs 4 (one worker process per core)")
+    kind = None if fmt is None else fmt.lower()
+    if kind is not None and kind not in OUTPUT_KINDS:
+        raise InputError(f"--format {fmt!r} is not one of {', '.join(OUTPUT_KINDS)}",
+                         hint="e.g. --format mp4")
+    recordings = recordings_in(inputs)
     # the gaps are filled by event integration, which needs c even where the method does not
     config = method_config(method, weights, n, contrast, hot_pixels, device, threads,
                            bit_depth, precision, settle_contrast=fill_gaps)
@@ -117,9 +157,35 @@ def hfr(
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 30")
     offset = parse_duration_us(time_offset) if time_offset else 0
     as_video = output.suffix.lower() in VIDEO_SUFFIXES
+    if recordings is not None:
+        if as_video:
+            raise InputError("-o names a video, but several recordings give one output each",
+                             path=output, hint=f"use -o FOLDER --format "
+                             f"{output.suffix.lower()[1:]}: FOLDER/<recording>"
+                             f"{output.suffix.lower()} each")
+    elif kind is not None and kind != (output.suffix.lower()[1:] if as_video else "frames"):
+        raise InputError(f"--format {kind} disagrees with -o {output.name}", path=output,
+                         hint="with one input the suffix of -o says what is written: leave "
+                         "out --format")
     if not as_video and output.suffix and not output.is_dir():
         raise InputError(f"unknown output type {output.suffix!r}", path=output,
                          hint="use .mp4, .gif, or a folder")
+    ranks = ranks_from_env()
+    if jobs > 1 or resume or ranks.enabled or recordings is not None:
+        from ..hfr_batch import HfrSettings
+
+        if ranks.enabled and jobs > 1:
+            raise InputError(f"--jobs {jobs} under torchrun (WORLD_SIZE={ranks.world})",
+                             hint="let torchrun start the processes: --nproc_per_node K")
+        opts = read_options(columns, one_based, time_unit, sensor, exposure_length, stamp,
+                            topics)
+        kind = kind or (output.suffix.lower()[1:] if as_video else "frames")
+        settings = HfrSettings(config, opts, None if exposure is None else tuple(exposure),
+                               offset, bit_depth, per_exposure, fill_gaps, max_gap_frames,
+                               fps, kind)
+        _hfr_batch(inputs, recordings, output, settings, jobs=jobs, resume=resume,
+                   overwrite=overwrite, ranks=ranks, guard=[*inputs, weights])
+        return
     check_output(output, overwrite, inputs=[*inputs, weights])
 
     with open_inputs(inputs, read_options(columns, one_based, time_unit, sensor,
@@ -137,8 +203,7 @@ def hfr(
         contrasts: list[float] = []
         clipped: list[float] = []
         count = {"exposure": 0, "gap": 0}
-        lines = ["# file fraction kind source (fraction of the source's exposure: binned "
-                 "events, no event clock)" if ins.binned else "# file time_us kind source"]
+        lines = [timestamps_header(ins.binned)]
 
         def results():
             for res in ahead(deblur_frames(ins.source, est, per_exposure=per_exposure)):
@@ -166,37 +231,138 @@ def hfr(
                     for i, fr in enumerate(stream):
                         name = f"{i:06d}.png"
                         write_image(tmp / name, fr.image, bit_depth)
-                        when = fmt_fraction(fr.fraction) if fr.t_us is None else \
-                            f"{fr.t_us:.3f}"
-                        lines.append(f"{name} {when} {fr.kind} {fr.source}")
+                        lines.append(f"{name} {timestamp_row(fr)}")
                         count[fr.kind] += 1
                     write_text(tmp / "timestamps.txt", "\n".join(lines) + "\n")
-                    meta = {
-                        "tool": f"trmd {__version__}", "method": est.name, "n": est.n,
-                        "weights_hash": est.weights_hash, "inputs": ins.paths,
-                        "precision": est.precision,
-                        "per_exposure": per_exposure or 2 * est.n + 1, "fps": fps,
-                        "fill_gaps": fill_gaps, "time_offset_us": offset,
-                        "contrast": contrasts, "frames": count}
-                    if ins.binned:
-                        del meta["time_offset_us"]
-                        meta.update(fill_gaps=False, **binned_meta(ins.source))
-                    write_json(tmp / "meta.json", meta)
+                    meta = hfr_meta(ins, est, per_exposure=per_exposure, fps=fps,
+                                    fill_gaps=fill_gaps, offset_us=offset)
+                    write_json(tmp / "meta.json", {**meta, "contrast": contrasts,
+                                                   "frames": count})
 
     for note in [*contrast_notes.lines(), *notes]:
         warn(note)
+    _report(output, count["exposure"], count["gap"], contrasts, clipped, config.contrast,
+            fps, est.name, est.n)
+
+
+def _report(output: Path, exposure: int, gap: int, contrasts: Sequence[float],
+            clipped: Sequence[float], given: float | None, fps: float, method: str,
+            n: int, recordings: int = 1) -> None:
+    from ..write import clipped_message
+
     if contrasts:
         import numpy as np
 
-        kind = "given" if config.contrast is not None else "estimated"
+        kind = "given" if given is not None else "estimated"
         typer.echo(f"contrast threshold c ({kind}): median {np.median(contrasts):.3f}, range "
                    f"{min(contrasts):.3f}–{max(contrasts):.3f}")
     said = clipped_message(sum(clipped) / len(clipped) if clipped else 0.0)
     if said:
         warn(said)
-    total = count["exposure"] + count["gap"]
-    typer.echo(f"wrote {output}: {total} frames ({count['exposure']} from exposures, "
-               f"{count['gap']} filling gaps) at {fps:g} fps, {est.name} N={est.n}")
+    typer.echo(f"wrote {output}: {exposure + gap} frames ({exposure} from exposures, "
+               f"{gap} filling gaps) at {fps:g} fps, {method} N={n}")
+    if recordings > 1:
+        typer.echo(f"  from {recordings} recordings, one output each")
+
+
+def _hfr_batch(inputs: list[Path], recordings: list[Path] | None, output: Path, settings, *,
+               jobs: int, resume: bool, overwrite: bool, ranks, guard: list) -> None:
+    """A run through a stage (see :mod:`trmd_cli.hfr_batch`): one recording or several, in
+    ``jobs`` local processes or as one rank of a torchrun launch, resumable."""
+    from rich.progress import Progress
+
+    from ..batch import (
+        Stage,
+        agreed,
+        joined,
+        prepare_stage,
+        recording_folders,
+        run_plan,
+        todo,
+        worker_threads,
+    )
+    from ..deblur import ContrastNotes
+    from ..errors import InputError
+    from ..hfr import CAPPED_NOTE
+    from ..hfr_batch import finish_hfr, make_hfr_plan
+    from ..write import check_output
+
+    groups = [[p] for p in recordings] if recordings is not None else [inputs]
+    suffix = "" if settings.kind == "frames" else f".{settings.kind}"
+    folders = [f"{name}{suffix}" for name in recording_folders(recordings)] \
+        if recordings is not None else [""]
+    main = ranks.rank == 0
+    stage = Stage(output)
+    # per process: the cores of this machine shared out among its processes
+    threads = worker_threads(jobs if not ranks.enabled else ranks.local_world,
+                             settings.config.threads)
+    settings = replace(settings, config=replace(settings.config, threads=threads))
+
+    def check() -> None:
+        if not main:
+            return
+        if resume and not stage.root.is_dir():
+            done = output.exists() and (output.is_file() or any(output.iterdir()))
+            raise InputError("nothing to resume: no unfinished run of this output", path=output,
+                             hint="the output is complete already" if done
+                             else "run it without --resume")
+        check_output(output, overwrite, inputs=guard)
+        if output.exists() and output.is_dir() != (settings.kind == "frames"
+                                                   or recordings is not None):
+            raise InputError("the output exists and is " + (
+                "a folder" if output.is_dir() else "not a folder"), path=output,
+                hint="choose another path for -o")
+
+    def prepare() -> None:
+        if not main:
+            return
+        if stage.root.exists() and not resume:
+            left = len(plan.units()) - len(stage.pending(plan)) if stage.plan_file.is_file() \
+                else 0
+            warn(f"an unfinished run of {output} ({left} parts) is discarded; --resume would "
+                 "have continued it")
+        _, before = prepare_stage(plan, output, resume)
+        if before:
+            typer.echo(f"resuming: {before} of {len(plan.units())} parts (exposures and gaps) "
+                       "are done already")
+
+    with joined(ranks):
+        agreed(ranks, check)
+        plan = agreed(ranks, lambda: make_hfr_plan(groups, folders, settings,
+                                                   warn if main else (lambda _: None)))
+        agreed(ranks, prepare)
+        reports = []
+        try:
+            work = todo(plan, stage, ranks)
+            with Progress(console=err, disable=not progress_enabled() or not main,
+                          transient=True) as bar:
+                task = bar.add_task("hfr", total=sum(len(phase) for phase in work))
+                reports = run_plan(plan, stage, ranks, work, jobs=jobs, threads=threads,
+                                   tick=lambda: bar.advance(task))
+        except (KeyboardInterrupt, TrmdError):
+            if main and stage.plan_file.is_file():
+                warn(f"the parts finished so far are kept in {stage.root}: rerun with "
+                     "--resume to finish")
+            raise
+        summary = agreed(ranks, lambda: finish_hfr(plan, stage) if main else None)
+
+    notes = ContrastNotes()
+    for report in reports:
+        for w in report.warnings:
+            warn(w)
+    for _, name, note, reliable in sorted(n for r in reports for n in r.contrast_notes):
+        notes.add_note(name, note, reliable)
+    for line in notes.lines():
+        warn(line)
+    if not main:
+        typer.echo(f"rank {ranks.rank}: made {sum(r.frames for r in reports)} parts; rank 0 "
+                   f"wrote {output}")
+        return
+    if summary.capped:
+        warn(CAPPED_NOTE)
+    meta = plan.items[0].meta
+    _report(output, summary.exposure, summary.gap, summary.contrasts, summary.clipped,
+            settings.config.contrast, settings.fps, meta["method"], meta["n"], len(plan.items))
 
 
 def register(app: typer.Typer) -> None:
