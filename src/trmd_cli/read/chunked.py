@@ -6,14 +6,21 @@ first and last time and its event count. Afterwards
 
 * ``events(t0, t1)`` decodes only the chunks that overlap ``[t0, t1)``: formats that can seek
   jump straight to them, the others decode from the start and skip. The decoder stays open
-  between calls, so windows requested in time order (``iter_windows``, or one ``events`` call
-  per frame) cost one pass over the file in total, holding one window plus one chunk;
+  between calls, so windows requested in time order (one ``events`` call per frame) cost one
+  pass over the file in total, holding one window plus one chunk; readers that set
+  :attr:`ChunkedRecording.gathers` decode a span of many chunks straight into one set of arrays;
+* ``iter_windows`` over windows whose starts do not go back sweeps the file once, the bounds of
+  all the windows found in each chunk by one binary search (memory: one window and its chunks);
 * files of at most :data:`CACHE_MAX_EVENTS` events are kept in memory after the first pass, so
   small recordings cost one decode whatever is asked of them.
+
+A reader may index a chunk without decoding it (:class:`ChunkSummary`) when it can check the
+chunk on its raw bytes for less than a decoding costs (.dat).
 """
 
 from __future__ import annotations
 
+import math
 from abc import abstractmethod
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -23,13 +30,29 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError
-from ..events import EventStream
+from ..events import EventStream, Exposure
 from .base import Recording
 
-__all__ = ["Chunk", "ChunkedRecording", "CACHE_MAX_EVENTS"]
+__all__ = ["Chunk", "ChunkSummary", "ChunkedRecording", "CACHE_MAX_EVENTS", "time_slice"]
 
 #: recordings with at most this many events stay in memory after opening (~13 bytes per event)
 CACHE_MAX_EVENTS = 10_000_000
+
+
+def _left(t: np.ndarray, bound: float) -> int:
+    if bound != bound:  # NaN: after every time, as numpy sorts it
+        return len(t)
+    if bound in (np.inf, -np.inf):
+        return 0 if bound < 0 else len(t)
+    # t holds integers: t >= bound exactly when t >= ceil(bound). An integer bound keeps the
+    # search in int64 (a float one would have numpy convert all of t to float64 first)
+    b = min(max(math.ceil(bound), -(1 << 63)), (1 << 63) - 1)
+    return int(np.searchsorted(t, b, side="left"))
+
+
+def time_slice(t: np.ndarray, lo: float, hi: float) -> slice:
+    """The positions of ``lo <= t < hi`` in the sorted integer times ``t`` (µs)."""
+    return slice(_left(t, lo), _left(t, hi))
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,6 +70,28 @@ class Chunk:
     y: np.ndarray
     t: np.ndarray
     p: np.ndarray
+    resume: Any = None
+
+
+@dataclass(frozen=True)
+class ChunkSummary:
+    """What the index keeps of a chunk a reader checked without decoding it into events.
+
+    The reader vouches that the chunk's times do not go back within it (the index still checks
+    them against the chunks before); it is never kept in memory.
+
+    Attributes:
+        ordinal: as :attr:`Chunk.ordinal`. first_us, last_us: its first and last time, µs.
+        count: its number of events (> 0). xmax, ymax: its largest column and row.
+        resume: as :attr:`Chunk.resume`.
+    """
+
+    ordinal: int
+    first_us: int
+    last_us: int
+    count: int
+    xmax: int
+    ymax: int
     resume: Any = None
 
 
@@ -75,9 +120,10 @@ class ChunkedRecording(Recording):
 
     # -- index ------------------------------------------------------------------------------
 
-    def _build_index(self, chunks: Iterable[Chunk] | None = None,
+    def _build_index(self, chunks: Iterable[Chunk | ChunkSummary] | None = None,
                      cache_max: int | None = None) -> None:
-        """One pass: validate every chunk, record its time span, keep small files in memory."""
+        """One pass: validate every chunk, record its time span, keep small files in memory
+        (only when every chunk came decoded: a :class:`ChunkSummary` holds no events)."""
         if cache_max is None:
             cache_max = CACHE_MAX_EVENTS
         ordinals: list[int] = []
@@ -90,13 +136,25 @@ class ChunkedRecording(Recording):
         prev_last: int | None = None
         xmax = ymax = -1
         for ch in self._decode(0) if chunks is None else chunks:
+            if isinstance(ch, ChunkSummary):
+                if prev_last is not None and ch.first_us < prev_last:
+                    raise self._time_error(total)
+                xmax, ymax = max(xmax, ch.xmax), max(ymax, ch.ymax)
+                ordinals.append(ch.ordinal)
+                firsts.append(ch.first_us)
+                lasts.append(ch.last_us)
+                counts.append(ch.count)
+                resumes.append(ch.resume)
+                total += ch.count
+                prev_last = ch.last_us
+                kept = None
+                continue
             n = len(ch.t)
             if n == 0:
                 continue
-            if n > 1:
+            if n > 1 and bool(np.less(ch.t[1:], ch.t[:-1]).any()):
                 back = np.flatnonzero(np.diff(ch.t) < 0)
-                if len(back):
-                    raise self._time_error(total + int(back[0]) + 1)
+                raise self._time_error(total + int(back[0]) + 1)
             if prev_last is not None and int(ch.t[0]) < prev_last:
                 raise self._time_error(total)
             xmax = max(xmax, int(ch.x.max()))
@@ -152,8 +210,8 @@ class ChunkedRecording(Recording):
 
     def _window(self, chunks: Sequence[Chunk], lo: float, hi: float) -> EventStream:
         # slice each chunk before joining: a short window inside a big chunk copies little
-        parts = [EventStream(c.x, c.y, c.t, c.p, self.width, self.height).slice(lo, hi)
-                 for c in chunks]
+        parts = [EventStream(c.x, c.y, c.t, c.p, self.width, self.height)
+                 .take(time_slice(c.t, lo, hi)) for c in chunks]
         parts = [s for s in parts if len(s)]
         if not parts:
             return EventStream.empty(self.width, self.height)
@@ -173,11 +231,48 @@ class ChunkedRecording(Recording):
         lo = -np.inf if start_us is None else start_us
         hi = np.inf if end_us is None else end_us
         if self._cache is not None:
-            return self._cache.slice(lo, hi)
+            return self._cache.take(time_slice(self._cache.t, lo, hi))
         sel = np.flatnonzero((self._last >= lo) & (self._first < hi))
         if len(sel) == 0:
             return EventStream.empty(self.width, self.height)
+        if self.gathers and len(sel) > 2:
+            ev = self._gather(int(sel[0]), int(sel[-1]))
+            return ev.take(time_slice(ev.t, lo, hi))
         return self._window(self._fetch(int(sel[0]), int(sel[-1])), lo, hi)
+
+    #: spans of more than two chunks are decoded into one set of arrays (:meth:`_gather`)
+    #: instead of joining chunks held together; readers whose chunks have the dtypes of
+    #: :class:`Chunk` set it
+    gathers = False
+
+    def _gather(self, k0: int, k1: int) -> EventStream:
+        """The events of the index's chunks k0..k1 in one set of arrays, each chunk copied in
+        as it is decoded (memory: the result and one chunk, not the result twice)."""
+        total = int(self._count[k0:k1 + 1].sum())
+        x, y = np.empty(total, np.uint16), np.empty(total, np.uint16)
+        t, p = np.empty(total, np.int64), np.empty(total, np.int8)
+        w0, w1 = int(self._ordinal[k0]), int(self._ordinal[k1])
+        at = 0
+        source = self._decode(w0, self._resume[k0])
+        try:
+            for ch in source:
+                if ch.ordinal < w0 or len(ch.t) == 0:
+                    continue
+                n = len(ch.t)
+                if at + n > total:
+                    break
+                s = slice(at, at + n)
+                x[s], y[s], t[s], p[s] = ch.x, ch.y, ch.t, ch.p
+                at += n
+                if ch.ordinal >= w1:
+                    break
+        finally:
+            source.close()  # type: ignore[attr-defined]
+        if at != total:
+            raise FormatError(f"the file holds other events than when it was opened ({at:,} "
+                              f"where {total:,} were counted)", path=self.path,
+                              hint="read it again once nothing writes to it")
+        return EventStream(x, y, t, p, self.width, self.height)
 
     def _fetch(self, k0: int, k1: int) -> list[Chunk]:
         """The chunks at index positions k0..k1, decoding as little as possible.
@@ -227,6 +322,83 @@ class ChunkedRecording(Recording):
         self._close_live()
         self._recent = []
 
+    def iter_windows(self, exposures: Sequence[Exposure],
+                     margin_us: int = 0) -> Iterator[EventStream]:
+        """Events with ``start - margin <= t <= end + margin`` per window, in the given order.
+
+        Windows whose starts do not go back are served by one sweep over the file: every chunk
+        decoded once, the windows' bounds found in each chunk by one binary search for all of
+        them, memory one window plus its chunks. Others take :meth:`events` one by one."""
+        lo = np.array([e.start_us - margin_us for e in exposures])
+        if self._cache is not None or len(lo) < 2 or np.any(lo[1:] < lo[:-1]):
+            return super().iter_windows(exposures, margin_us)
+        hi = np.array([e.end_us + margin_us + 1 for e in exposures])  # half-open
+        return self._sweep(lo, hi)
+
+    def _sweep(self, lo: np.ndarray, hi: np.ndarray) -> Iterator[EventStream]:
+        # window i spans the index's chunks ka[i]..kb[i] (none when ka > kb): the chunks before
+        # ka end before it starts, those after kb start after it ends
+        ka = np.searchsorted(self._last, lo, side="left")
+        kb = np.searchsorted(self._first, hi, side="left") - 1
+        by_kb = np.argsort(kb, kind="stable")
+        kb_sorted = kb[by_kb]
+        start = np.zeros(len(lo), np.int64)  # window i's first event in chunk ka[i]
+        stop = np.zeros(len(lo), np.int64)  # its end in chunk kb[i]
+        held: dict[int, Chunk] = {}  # index position → decoded chunk
+        source: Iterator[Chunk] | None = None
+        source_next = 0  # ordinal of the next chunk the source yields
+
+        def load(k: int) -> Chunk:
+            nonlocal source, source_next
+            want = int(self._ordinal[k])
+            if source is None or source_next > want or (
+                    self._resume[k] is not None and source_next < want):
+                if source is not None:
+                    source.close()  # type: ignore[attr-defined]
+                source = self._decode(want, self._resume[k])
+                source_next = want
+            for ch in source:
+                source_next = ch.ordinal + 1
+                if ch.ordinal == want:
+                    # the bounds of every window that starts or ends in this chunk, at once
+                    a0, a1 = np.searchsorted(ka, [k, k + 1])
+                    start[a0:a1] = np.searchsorted(ch.t, lo[a0:a1], side="left")
+                    b0, b1 = np.searchsorted(kb_sorted, [k, k + 1])
+                    ends = by_kb[b0:b1]
+                    stop[ends] = np.searchsorted(ch.t, hi[ends], side="left")
+                    return ch
+            raise FormatError(f"chunk {want} was indexed but is not in the file any more",
+                              path=self.path, hint="read it again once nothing writes to it")
+
+        width, height = self.width, self.height
+        low = 0  # the chunks held all are at or after it
+        try:
+            for i, (a, b) in enumerate(zip(ka.tolist(), kb.tolist(), strict=True)):
+                if a > low:
+                    for k in [k for k in held if k < a]:
+                        del held[k]
+                    low = a
+                if a > b:
+                    yield EventStream.empty(width, height)
+                    continue
+                for k in range(a, b + 1):
+                    if k not in held:
+                        held[k] = load(k)
+                i0, i1 = int(start[i]), int(stop[i])
+                if a == b:
+                    c = held[a]
+                    yield (EventStream(c.x[i0:i1], c.y[i0:i1], c.t[i0:i1], c.p[i0:i1], width,
+                                       height) if i1 > i0 else EventStream.empty(width, height))
+                    continue
+                cuts = [(held[a], slice(i0, None))]
+                cuts += [(held[k], slice(None)) for k in range(a + 1, b)]
+                cuts.append((held[b], slice(None, i1)))
+                yield self._window([Chunk(c.ordinal, c.x[s], c.y[s], c.t[s], c.p[s])
+                                    for c, s in cuts], -np.inf, np.inf)
+        finally:
+            if source is not None:
+                source.close()  # type: ignore[attr-defined]
+
     def iter_events(self, start_us: float | None = None, end_us: float | None = None,
                     max_events: int = 1 << 22) -> Iterator[EventStream]:
         """The events of ``[start_us, end_us)``, one decoded chunk at a time (sliced to at most
@@ -235,7 +407,7 @@ class ChunkedRecording(Recording):
         hi = np.inf if end_us is None else end_us
         step = max(int(max_events), 1)
         if self._cache is not None:
-            ev = self._cache.slice(lo, hi)
+            ev = self._cache.take(time_slice(self._cache.t, lo, hi))
             for i in range(0, len(ev), step):
                 yield ev.take(slice(i, i + step))
             return

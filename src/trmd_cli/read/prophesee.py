@@ -22,8 +22,13 @@ Decoders:
   order, so windows of a large file are read without decoding the rest.
 * .dat — decoded here with numpy (after the ``%`` header, one byte event type, one byte event
   size = 8, then records of uint32 time µs and uint32 with x in bits 0–13, y in bits 14–27,
-  polarity in bits 28–31). The 32-bit time wraps after 71.6 min and is unwrapped.
+  polarity in bits 28–31). The 32-bit time wraps after 71.6 min and is unwrapped. Files larger
+  than the in-memory cache are indexed on their raw records (times, polarities, coordinates
+  checked, not decoded), and the chunks with nothing to repair are later unpacked without the
+  repairs' checks: one decoding per read, as for files in the cache.
 * EVT 3.0 — decoded with the ``evt3`` package (not expelliarmus: it doubles EVT 3.0 times).
+  Its index needs the decoder's state, so a file larger than the cache is decoded once to open
+  it and once more to read it.
 
 Both numpy decoders agree event for event with expelliarmus on the shared recordings (tests).
 """
@@ -32,6 +37,7 @@ from __future__ import annotations
 
 import os
 import re
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,8 +46,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError
+from ..events import EventStream
 from .base import ReadOptions
-from .chunked import Chunk, ChunkedRecording
+from .chunked import Chunk, ChunkedRecording, ChunkSummary
 
 __all__ = [
     "read_evt2",
@@ -541,10 +548,113 @@ def decode_dat_records(records: np.ndarray, state: tuple[int, int] = (-1, 0), *,
     return x, y, t, p, state_after
 
 
+#: clean .dat chunks are unpacked through views of the records' bytes, which read them as
+#: little-endian: elsewhere every chunk takes the full decoding
+_DAT_VIEWS = sys.byteorder == "little"
+#: records per block of the clean-chunk passes: a block and its temporaries stay in the
+#: processor's L2 cache between the passes over them (numpy makes one pass per operation)
+DAT_BLOCK_EVENTS = 1 << 16
+
+
+class _DatScratch:
+    """Reused buffers of one pass over a .dat file (a block each)."""
+
+    def __init__(self) -> None:
+        self.block = np.empty(DAT_BLOCK_EVENTS, np.int64)  # records as read
+        self.t = np.empty(DAT_BLOCK_EVENTS, np.uint32)
+        self.d = np.empty(DAT_BLOCK_EVENTS, np.uint32)
+        self.tmp = np.empty(DAT_BLOCK_EVENTS, np.uint32)
+        self.rise = np.empty(DAT_BLOCK_EVENTS, bool)
+
+
+class _DatJudge:
+    """Whether a chunk's records need nothing of :func:`decode_dat_records` but the unpacking,
+    judged block by block: their times never go back nor wrap, rise by at most
+    :data:`CLOCK_JUMP_US` from the time before the chunk to its last (so that no time is a
+    suspect for :func:`clock_excursions`), and every polarity is 0 or 1. A chunk that is not
+    clean takes the full decoding, which repairs or raises as it always did.
+
+    Also keeps the chunk's first and last time (raw) and largest column and row."""
+
+    def __init__(self, last_raw: int, scratch: _DatScratch) -> None:
+        self.last_raw = last_raw
+        self.prev = last_raw  # the time before the next block
+        self.first = -1
+        self.n = 0
+        self.xmax = self.ymax = 0
+        self.clean = True
+        self._s = scratch
+
+    def feed(self, records: np.ndarray) -> bool:
+        """Judge the next block (int64 array of records); False once the chunk is not clean."""
+        m = len(records)
+        s = self._s
+        u32 = records.view(np.uint32)
+        t, d = s.t[:m], s.d[:m]
+        np.copyto(t, u32[0::2])  # contiguous copies: numpy is several times faster on them
+        np.copyto(d, u32[1::2])
+        if self.first < 0:
+            self.first = int(t[0])
+        self.clean = (int(t[0]) >= self.prev
+                      and (m < 2 or bool(np.greater_equal(t[1:], t[:-1], out=s.rise[:m - 1])
+                                         .all()))
+                      and int(d.max()) < 2 << 28)
+        if self.clean:
+            self.xmax = max(self.xmax, int(np.bitwise_and(d, 0x3FFF, out=s.tmp[:m]).max()))
+            self.ymax = max(self.ymax,
+                            int(np.bitwise_and(d, 0x0FFFC000, out=s.tmp[:m]).max()) >> 14)
+            self.prev = int(t[-1])
+            self.n += m
+        return self.clean
+
+    def verdict(self) -> bool:
+        """The chunk's judgement once every block was fed."""
+        if not self.clean or self.n == 0 or (self.last_raw < 0 and self.n < 2):
+            # a lone first record is judged by the records after it: the full decoding does it
+            return False
+        if self.last_raw >= 0 and self.first - self.last_raw > CLOCK_JUMP_US:
+            return False
+        return self.prev - self.first <= CLOCK_JUMP_US
+
+
+def _unpack_clean_dat(records: np.ndarray, wraps: int, x: np.ndarray, y: np.ndarray,
+                      t: np.ndarray, p: np.ndarray, scratch: _DatScratch) -> None:
+    """Decode a block of a clean chunk (:class:`_DatJudge`) read into the int64 array
+    ``records`` into the given arrays (t in µs). Equal, element for element, to
+    :func:`decode_dat_records` on a clean chunk."""
+    m = len(records)
+    d, tmp = scratch.d[:m], scratch.tmp[:m]
+    np.copyto(d, records.view(np.uint32)[1::2])
+    np.copyto(x, d, casting="unsafe")  # the low 16 bits
+    np.bitwise_and(x, 0x3FFF, out=x)
+    np.right_shift(d, 14, out=tmp)
+    np.copyto(y, tmp, casting="unsafe")
+    np.bitwise_and(y, 0x3FFF, out=y)
+    # polarity 0/1 (the chunk is clean: bits 29-31 are 0) → -1/+1
+    np.greater_equal(d, 1 << 28, out=p.view(np.bool_))
+    np.multiply(p, 2, out=p)
+    np.subtract(p, 1, out=p)
+    # the record's 8 bytes as a little-endian int64 are t + (d << 32): keep t
+    np.bitwise_and(records, 0xFFFFFFFF, out=t)
+    if wraps:
+        np.add(t, wraps << 32, out=t)
+
+
 class DatRecording(ChunkedRecording):
-    """A Prophesee .dat file of CD events, decoded in chunks of :data:`DAT_CHUNK_EVENTS`."""
+    """A Prophesee .dat file of CD events, decoded in chunks of :data:`DAT_CHUNK_EVENTS`.
+
+    Files larger than the in-memory cache are indexed without being decoded: the index pass
+    checks each chunk's times, polarities and coordinates on the raw records and keeps its time
+    span, so that reading the events later decodes each chunk once, and the chunks it found
+    clean with no check repeated. Chunks with something to repair (a wrap of the 32-bit clock,
+    corrupt times) or to refuse take the full decoding in both passes.
+    """
+
+    gathers = True
 
     def __init__(self, path: Path, options: ReadOptions, chunk_events: int = DAT_CHUNK_EVENTS):
+        from . import chunked
+
         header = _read_header(path)
         warnings: list[str] = []
         _ignore_time_unit(options, ".dat", warnings)
@@ -566,35 +676,117 @@ class DatRecording(ChunkedRecording):
             raise FormatError(f"event type 0x{ev_type:02X} is not CD events (0x0C)", path=path,
                               hint="only .dat files of CD (change detection) events are read")
         self._data_offset = header.data_offset + 2
-        self._chunk = int(chunk_events)
+        self._chunk = max(int(chunk_events), 1)
         self._num_records = _whole_records(path, self._data_offset, 8, "8-byte event record")
         self._corrupt: list[tuple[int, int, int, int, int]] = []
+        #: per chunk ordinal, whether the index pass found it clean (None before that pass)
+        self._clean: np.ndarray | None = None
+        clean = np.zeros(-(-self._num_records // self._chunk), bool)
         self._counting = True
-        self._build_index()
+        # files the cache holds are decoded by the index pass, once; the others only checked
+        summarize = self._num_records > chunked.CACHE_MAX_EVENTS
+        self._build_index(self._pass(0, None, judged=clean, summarize=summarize))
         self._counting = False
+        self._clean = clean
         if self._corrupt:
             first, to_us, from_us, _, _ = self._corrupt[0]
             self.warnings.append(_excursion_note(
                 "record time", first, sum(c[4] for c in self._corrupt), to_us, from_us, 0,
                 "record"))
 
-    def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
+    def _records_in(self, k: int) -> int:
+        return min(self._chunk, self._num_records - k * self._chunk)
+
+    def _read_into(self, fh, buf: np.ndarray) -> None:
+        if fh.readinto(memoryview(buf).cast("B")) != buf.nbytes:
+            raise FormatError("the file got shorter while it was read", path=self.path,
+                              hint="read it again once nothing writes to it")
+
+    def _full(self, fh, k: int, state: tuple[int, int]):
+        """:func:`decode_dat_records` on chunk ``k``, with the records that follow it."""
+        fh.seek(self._data_offset + 8 * k * self._chunk)
+        rec = np.empty(self._records_in(k), np.int64)
+        self._read_into(fh, rec)
+        ahead = np.empty(RETURN_WORDS, _DAT_DTYPE)
+        ahead = ahead[:fh.readinto(memoryview(ahead).cast("B")) // 8]
+        end = (k + 1) * self._chunk + len(ahead) >= self._num_records
+        return decode_dat_records(
+            rec.view(_DAT_DTYPE), state, path=self.path, first_record=k * self._chunk,
+            ahead=ahead, at_end=end, corrupt=self._corrupt if self._counting else None)
+
+    def _unpack(self, fh, k: int, wraps: int, x: np.ndarray, y: np.ndarray, t: np.ndarray,
+                p: np.ndarray, scratch: _DatScratch) -> None:
+        """Unpack clean chunk ``k`` into the arrays given (its length), block by block: each
+        block read into the scratch buffer, where it stays in the cache for the passes over
+        it."""
+        fh.seek(self._data_offset + 8 * k * self._chunk)
+        for i in range(0, len(t), DAT_BLOCK_EVENTS):
+            s = slice(i, i + DAT_BLOCK_EVENTS)
+            block = scratch.block[:len(t[s])]
+            self._read_into(fh, block)
+            _unpack_clean_dat(block, wraps, x[s], y[s], t[s], p[s], scratch)
+
+    def _pass(self, start: int, resume: Any, *, judged: np.ndarray | None = None,
+              summarize: bool = False) -> Iterator[Chunk | ChunkSummary]:
+        """Chunks from ``start`` in file order. While indexing (``judged`` given), every chunk
+        is judged and ``judged`` filled in; with ``summarize`` a clean chunk is only checked
+        and summed up. Afterwards the index's judgement is used."""
         state = (-1, 0) if resume is None else resume
-        k = start
+        scratch = _DatScratch()
         with open(self.path, "rb") as fh:
-            fh.seek(self._data_offset + 8 * k * self._chunk)
-            while k * self._chunk < self._num_records:
-                rec = np.fromfile(fh, _DAT_DTYPE, self._chunk)
-                here = fh.tell()
-                ahead = np.fromfile(fh, _DAT_DTYPE, RETURN_WORDS)
-                fh.seek(here)
-                end = (k + 1) * self._chunk + len(ahead) >= self._num_records
-                x, y, t, p, after = decode_dat_records(
-                    rec, state, path=self.path, first_record=k * self._chunk, ahead=ahead,
-                    at_end=end, corrupt=self._corrupt if self._counting else None)
+            for k in range(start, -(-self._num_records // self._chunk)):
+                n = self._records_in(k)
+                if judged is None:
+                    clean = bool(self._clean[k])  # type: ignore[index]
+                elif not _DAT_VIEWS:
+                    clean = False
+                else:
+                    judge = _DatJudge(state[0], scratch)
+                    fh.seek(self._data_offset + 8 * k * self._chunk)
+                    for i in range(0, n, DAT_BLOCK_EVENTS):
+                        block = scratch.block[:min(DAT_BLOCK_EVENTS, n - i)]
+                        self._read_into(fh, block)
+                        if not judge.feed(block):
+                            break
+                    judged[k] = clean = judge.verdict()
+                if not clean:
+                    x, y, t, p, after = self._full(fh, k, state)
+                    yield Chunk(k, x, y, t, p, resume=state)
+                    state = after
+                    continue
+                wraps = state[1]
+                if summarize:
+                    yield ChunkSummary(k, judge.first + (wraps << 32), judge.prev + (wraps << 32),
+                                       n, judge.xmax, judge.ymax, resume=state)
+                    state = (judge.prev, wraps)
+                    continue
+                x, y = np.empty(n, np.uint16), np.empty(n, np.uint16)
+                t, p = np.empty(n, np.int64), np.empty(n, np.int8)
+                self._unpack(fh, k, wraps, x, y, t, p, scratch)
                 yield Chunk(k, x, y, t, p, resume=state)
-                state = after
-                k += 1
+                state = (int(t[-1]) - (wraps << 32), wraps)
+
+    def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
+        return self._pass(start, resume)  # type: ignore[return-value]
+
+    def _gather(self, k0: int, k1: int) -> EventStream:
+        """The events of the index's chunks k0..k1 in one set of arrays, clean chunks
+        unpacked straight into it."""
+        total = int(self._count[k0:k1 + 1].sum())
+        x, y = np.empty(total, np.uint16), np.empty(total, np.uint16)
+        t, p = np.empty(total, np.int64), np.empty(total, np.int8)
+        scratch = _DatScratch()
+        at = 0
+        with open(self.path, "rb") as fh:
+            for i in range(k0, k1 + 1):
+                k, state = int(self._ordinal[i]), self._resume[i]
+                s = slice(at, at + int(self._count[i]))
+                if self._clean[k]:  # type: ignore[index]
+                    self._unpack(fh, k, state[1], x[s], y[s], t[s], p[s], scratch)
+                else:
+                    x[s], y[s], t[s], p[s], _ = self._full(fh, k, state)
+                at = s.stop
+        return EventStream(x, y, t, p, self.width, self.height)
 
 
 def read_dat(path: Path, options: ReadOptions) -> DatRecording:
@@ -611,6 +803,8 @@ class Evt3Recording(ChunkedRecording):
     EVT 3.0 keeps decoder state across the whole stream, so a window is reached by decoding from
     the start (skipping what comes before); files up to the cache size are decoded once.
     """
+
+    gathers = True
 
     def __init__(self, path: Path, options: ReadOptions, batch_bytes: int = EVT3_CHUNK_BYTES):
         from . import require
@@ -648,8 +842,11 @@ class Evt3Recording(ChunkedRecording):
                 t = np.asarray(ev.t)
                 # times are far below 2**63: reinterpret instead of copying
                 t = t.view(np.int64) if t.dtype == np.uint64 else t.astype(np.int64)
-                yield Chunk(k, np.asarray(ev.x, np.uint16), np.asarray(ev.y, np.uint16), t,
-                            (np.asarray(ev.p).astype(np.int8) * 2 - 1).astype(np.int8))
+                # polarity 0/1 → -1/+1 in one new array (int8 arithmetic wraps as the
+                # casts before did)
+                p = np.multiply(np.asarray(ev.p).view(np.int8), 2, dtype=np.int8)
+                np.subtract(p, 1, out=p)
+                yield Chunk(k, np.asarray(ev.x, np.uint16), np.asarray(ev.y, np.uint16), t, p)
         except (OSError, ValueError, RuntimeError) as e:
             raise FormatError(f"EVT 3.0 decoding failed: {e}", path=self.path,
                               hint=_DAMAGED) from None
@@ -659,24 +856,36 @@ class Evt3Recording(ChunkedRecording):
 #: TIME_LOW, CONTINUED_4, TIME_HIGH, EXT_TRIGGER, OTHERS, CONTINUED_12
 _EVT3_VALID = np.zeros(16, bool)
 _EVT3_VALID[[0x0, 0x2, 0x3, 0x4, 0x5, 0x6, 0x7, 0x8, 0xA, 0xE, 0xF]] = True
+#: the undefined types as the bits of one number: word type k is undefined when bit k is set
+_EVT3_UNDEFINED_BITS = np.uint16(sum(1 << k for k in range(16) if not _EVT3_VALID[k]))
+#: 16-bit words per block of the scan for undefined word types (512 KiB: the block and its
+#: temporary stay in the processor's cache between numpy's passes over them)
+_EVT3_SCAN_WORDS = 1 << 18
 
 
 def _undefined_evt3_words(path: Path, offset: int, words: int
                           ) -> tuple[int, int, list[int]] | None:
     """(count, index of the first, their types) of the words whose type EVT 3.0 does not
     define — which the decoder skips without a word — or None."""
-    chunk = 1 << 22
     count, first, kinds = 0, -1, set()
+    w = np.empty(_EVT3_SCAN_WORDS, np.uint16)
+    typ = np.empty(_EVT3_SCAN_WORDS, np.uint16)
     with open(path, "rb") as fh:
         fh.seek(offset)
-        for start in range(0, words, chunk):
-            typ = np.fromfile(fh, "<u2", min(chunk, words - start)) >> 12
-            bad = ~_EVT3_VALID[typ]
-            if bad.any():
-                at = np.flatnonzero(bad)
+        for start in range(0, words, _EVT3_SCAN_WORDS):
+            n = min(_EVT3_SCAN_WORDS, words - start)
+            block, t = w[:n], typ[:n]
+            fh.readinto(memoryview(block).cast("B"))
+            np.right_shift(block.view("<u2"), 12, out=t)
+            # bit `type` of the undefined-types number, for every word at once: no table
+            # look-up (numpy's indexing is several times slower than its arithmetic)
+            np.right_shift(_EVT3_UNDEFINED_BITS, t, out=block)
+            np.bitwise_and(block, 1, out=block)
+            if block.any():
+                at = np.flatnonzero(block)
                 count += len(at)
                 first = start + int(at[0]) if first < 0 else first
-                kinds.update(int(k) for k in np.unique(typ[at]))
+                kinds.update(int(k) for k in np.unique(t[at]))
     return (count, first, sorted(kinds)) if count else None
 
 
