@@ -26,7 +26,7 @@ app = typer.Typer(
 
 #: command modules, in the order `trmd --help` lists them
 COMMANDS = ("deblur", "hfr", "motion", "info", "voxelize", "convert", "simulate", "train",
-            "eval")
+            "finetune", "eval")
 
 
 def _version(value: bool) -> None:

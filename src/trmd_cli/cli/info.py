@@ -112,6 +112,15 @@ def _weights_info(file: Path, as_json: bool) -> None:
                      else ""))
     if rows and val.get("set"):
         t.add_row("", f"on {val['set']}")
+    ft = d["finetune"]
+    if ft:
+        t.add_row("fine-tuned on", f"{', '.join(map(str, ft.get('inputs', [])))}: "
+                                   f"{ft.get('windows')} window(s), {ft.get('steps')} steps, "
+                                   f"from weights {ft.get('init_weights')}")
+        before, after = ft.get("held_out_before") or {}, ft.get("held_out_after") or {}
+        if "total" in before and "total" in after:
+            t.add_row("", f"held-out loss {before['total']:.4g} → {after['total']:.4g} "
+                          f"({ft.get('held_out')} window(s))")
     Console().print(t)
 
 

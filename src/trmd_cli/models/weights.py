@@ -347,7 +347,9 @@ def describe_weights(path: str | Path | None = None) -> dict[str, Any]:
         ``parameters`` (count, from the tensor shapes), ``dtype``, ``n``, ``channels``,
         ``inputs`` (what the network needs besides the blurry frame and the voxels),
         ``recipe`` (its name), ``training_data``, ``trmd_version`` and — when the file
-        records them — ``validation``: {method: {figure: value}} on its validation set.
+        records them — ``validation``: {method: {figure: value}} on its validation set;
+        ``finetune``: what ``trmd finetune`` adapted it on (inputs, windows, steps, held-out
+        losses before and after), else None.
     Raises:
         WeightsError: as :func:`read_metadata`.
     """
@@ -395,6 +397,7 @@ def describe_weights(path: str | Path | None = None) -> dict[str, Any]:
         "trmd_version": meta.get("trmd_version"),
         "validation": val,
         "checkpoint": meta.get("checkpoint"),
+        "finetune": meta.get("finetune") if isinstance(meta.get("finetune"), dict) else None,
     }
 
 

@@ -11,7 +11,8 @@ Every loss has the signature ``loss(outputs, batch, recipe) -> scalar tensor`` w
 
 Only the *supervised* losses read ``batch["sharp"]``; the loop never does, so a recipe whose
 weights name only unsupervised losses (``blur_consistency``, ``event_consistency``) trains on a
-user's own recording without ground truth. Add a loss with :func:`register_loss`.
+user's own recording without ground truth (``trmd finetune``, which adds ``reblur`` and ``warp``:
+the events' motion against the frames). Add a loss with :func:`register_loss`.
 
 The paper's objective (Chen & Yu 2024) is ``residual + λ·middle`` with MSE and λ = 1.
 """
@@ -142,6 +143,90 @@ def event_consistency_loss(outputs: dict, batch: dict, recipe) -> torch.Tensor:
         given = given.to(device=logl.device, dtype=logl.dtype).reshape(-1)
         c = torch.where(torch.isfinite(given), given, c)
     return penalty(logl[:, 1:] - logl[:, :-1] - c.view(-1, 1, 1, 1) * b, recipe)
+
+
+def _masked(diff: torch.Tensor, mask: torch.Tensor, recipe) -> torch.Tensor:
+    """Mean of ρ(diff) (the recipe's penalty) over the pixels where ``mask`` (broadcast to
+    ``diff``) is 1; 0 when no pixel is."""
+    kind = recipe.loss.penalty
+    if kind == "mse":
+        rho = diff.square()
+    elif kind == "l1":
+        rho = diff.abs()
+    else:
+        eps = recipe.loss.charbonnier_eps
+        rho = (diff.square() + eps * eps).sqrt() - eps
+    mask = mask.to(rho.dtype).expand_as(rho)
+    return (rho * mask).sum() / mask.sum().clamp_min(1.0)
+
+
+def _sample(frames: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """``frames`` (B, C, h, w) sampled at ``grid`` (B, K, h, w, 2; ``grid_sample``'s
+    normalised coordinates, corners aligned): (B, K, C, h, w)."""
+    import torch.nn.functional as F
+
+    b, k = grid.shape[:2]
+    c, h, w = frames.shape[1:]
+    inp = frames.unsqueeze(1).expand(b, k, c, h, w).reshape(b * k, c, h, w)
+    out = F.grid_sample(inp, grid.reshape(b * k, *grid.shape[2:]).to(inp.dtype),
+                        mode="bilinear", padding_mode="border", align_corners=True)
+    return out.reshape(b, k, c, *out.shape[-2:])
+
+
+def _motion(batch: dict, name: str) -> None:
+    if f"{name}_grid" not in batch:
+        raise InputError(f"loss '{name}' needs the exposure's motion and this data has none",
+                         hint=f"set loss.{name} = 0 (`trmd finetune` gives it the events' "
+                         "motion)")
+
+
+@register_loss("reblur")
+def reblur_loss(outputs: dict, batch: dict, recipe) -> torch.Tensor:
+    """The middle frame moved along the exposure's motion and averaged vs the blurry frame.
+
+    ``batch["reblur_grid"]`` (B, J, h, w, 2) says where each pixel of the blurry frame was in
+    the middle frame at J instants of the exposure (from the events' motion, e.g.
+    :func:`trmd_cli.motion.estimate_motion`); ``batch["reblur_mask"]`` (B, 1, h, w) is 1 where
+    every instant stays inside the frame and the motion is trusted. Unlike
+    ``blur_consistency`` this is not satisfied by construction: only a sharp middle frame,
+    blurred by the true motion, gives the blurry frame back. Needs no sharp frames.
+    """
+    _motion(batch, "reblur")
+    mid = outputs["latent"][:, outputs["latent"].shape[1] // 2]
+    reblurred = _sample(mid, batch["reblur_grid"]).mean(1)
+    return _masked(reblurred - batch["blurry"], batch["reblur_mask"], recipe)
+
+
+@register_loss("warp")
+def warp_loss(outputs: dict, batch: dict, recipe) -> torch.Tensor:
+    """Each latent frame L(k) vs the middle frame carried to instant k by the motion.
+
+    ``batch["warp_grid"]`` (B, 2N+1, h, w, 2): where each pixel at instant k was in the middle
+    frame; ``batch["warp_mask"]`` (B, 2N+1, 1, h, w): 1 where that point lies inside the frame
+    and the motion is trusted. Needs no sharp frames.
+    """
+    _motion(batch, "warp")
+    latent = outputs["latent"]
+    mid = latent[:, latent.shape[1] // 2]
+    carried = _sample(mid, batch["warp_grid"])
+    return _masked(latent - carried, batch["warp_mask"], recipe)
+
+
+@register_loss("deconv")
+def deconv_loss(outputs: dict, batch: dict, recipe) -> torch.Tensor:
+    """The 2N+1 frames vs the motion-aware deconvolution of the blurry frame along the events'
+    motion (:func:`trmd_cli.deconv.motion_deblur`), where its guard trusts it.
+
+    That deconvolution is the minimiser of the re-blur residual under a Huber gradient prior,
+    solved once per window: this term carries the re-blur constraint with the prior the
+    network's own gradient cannot give. ``batch["deconv"]`` (B, 2N+1, C, h, w) the frames,
+    ``batch["deconv_mask"]`` (B, 2N+1, 1, h, w) the deconvolution's share of each (0 where the
+    guard fell back to EDI). Needs no sharp frames.
+    """
+    if "deconv" not in batch:
+        raise InputError("loss 'deconv' needs the motion-aware deconvolution and this data has "
+                         "none", hint="set loss.deconv = 0 (`trmd finetune` computes it)")
+    return _masked(outputs["latent"] - batch["deconv"], batch["deconv_mask"], recipe)
 
 
 def total_loss(outputs: dict, batch: dict, recipe) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
