@@ -257,6 +257,8 @@ def test_finetune_with_zero_steps_gives_back_the_starting_network(sim, tmp_path)
     (["-o", "{d}/w.safetensors", "--loss", "warp"], "--loss", "NAME=WEIGHT"),
     (["-o", "{d}/w.safetensors", "--loss", "middle=1"], "middle", "sharp frames"),
     (["-o", "{d}/w.safetensors", "--contrast", "-1"], "--contrast", "positive"),
+    (["-o", "{d}/w.safetensors", "--parts", "refine,nope", "--steps", "1"], "nope",
+     "its parts: .*refine"),
 ])
 def test_bad_options_give_one_line(sim, tmp_path, args, names, needle):
     args = [a.replace("{d}", str(tmp_path)) for a in args]
@@ -300,3 +302,19 @@ def test_binned_events_are_refused_in_one_line(tmp_path):
     r = runner.invoke(app, ["finetune", str(images), str(bins), "-o", str(out), "--steps", "1"])
     assert_one_error_line(r, images.name, "no event times")
     assert not out.exists()
+
+
+def test_only_the_named_parts_change(sim, tmp_path):
+    from trmd_cli.models.weights import load_weights
+
+    out = tmp_path / "head.safetensors"
+    r = runner.invoke(app, ["finetune", str(sim), "-o", str(out), "--steps", "2", "--crop",
+                            "32", "--batch-size", "2", "--parts", "refine,head", "--threads",
+                            "1"])
+    assert r.exit_code == 0, r.output
+    tuned_net, _ = load_weights(out)
+    start, _ = load_weights(None)
+    changed = {n.split(".")[0] for (n, p), q in zip(tuned_net.named_parameters(),
+                                                     start.parameters(), strict=True)
+               if not torch.equal(p, q)}
+    assert changed and changed <= {"refine", "head"}, changed

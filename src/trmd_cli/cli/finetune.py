@@ -85,6 +85,10 @@ def finetune(
         "--contrast", help="The sensor's contrast threshold c, or 'auto' to estimate it per "
         "frame.")] = "auto",
     seed: Annotated[int, typer.Option("--seed", help="Random seed of the crops.")] = 0,
+    parts: Annotated[Optional[str], typer.Option(
+        "--parts", help="Train only these parts of the network, comma-separated (e.g. "
+        "refine,head,up4,up3; `trmd info` on weights does not list them: an unknown name is "
+        "refused with the list). Default: all.")] = None,
     hot_pixels: Annotated[bool, typer.Option(
         "--hot-pixels/--keep-hot-pixels", help="Ignore the events of hot pixels.")] = True,
     exposure: Exposure = None,
@@ -128,7 +132,9 @@ def finetune(
     config = FinetuneConfig(steps=steps, crop=crop, batch_size=batch_size, lr=lr,
                             losses=parse_losses(loss or []), anchor=anchor, holdout=holdout,
                             max_windows=max_windows, contrast=parse_contrast(contrast),
-                            hot_pixels=hot_pixels, seed=seed)
+                            hot_pixels=hot_pixels, seed=seed,
+                            trainable=tuple(x.strip() for x in (parts or "").split(",")
+                                            if x.strip()))
     offset = parse_duration_us(time_offset) if time_offset else 0
     opts = read_options(columns, one_based, time_unit, sensor, exposure_length, stamp, topics)
     guard = [*inputs, init_weights]

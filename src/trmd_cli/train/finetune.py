@@ -76,6 +76,8 @@ class FinetuneConfig:
         hot_pixels: ignore the events of hot pixels (c and motion).
         penalty, charbonnier_eps, log_eps: as in a training recipe's ``[loss]`` table.
         seed: crops and window order.
+        trainable: names of the network's top-level parts that train (e.g. ``("refine",
+            "head")``); empty = all of them. Fewer parameters fit a few windows less closely.
     """
 
     steps: int = 300
@@ -94,6 +96,7 @@ class FinetuneConfig:
     charbonnier_eps: float = 1e-3
     log_eps: float = 1e-2
     seed: int = 0
+    trainable: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         from .losses import LOSSES, SUPERVISED
@@ -433,6 +436,28 @@ def _freeze_norm(model: torch.nn.Module) -> None:
             m.eval()
 
 
+def _check_parts(model: torch.nn.Module, names: Sequence[str]) -> dict[str, torch.nn.Module]:
+    parts = dict(model.named_children())
+    unknown = [n for n in names if n not in parts]
+    if unknown:
+        raise InputError(f"the network has no part named {', '.join(unknown)}",
+                         hint=f"its parts: {', '.join(parts)}")
+    return parts
+
+
+def _trainable(model: torch.nn.Module, names: Sequence[str]) -> list[torch.nn.Parameter]:
+    """The parameters that train (the others are frozen): all, or those of the named parts."""
+    if not names:
+        return list(model.parameters())
+    parts = _check_parts(model, names)
+    for p in model.parameters():
+        p.requires_grad_(False)
+    params = [p for n in names for p in parts[n].parameters()]
+    for p in params:
+        p.requires_grad_(True)
+    return params
+
+
 def tune(model: torch.nn.Module, windows: Sequence[Window], config: FinetuneConfig, *,
          progress: Callable[[str, int, int, dict[str, float]], None] | None = None,
          every: Callable[[int], None] | None = None) -> None:
@@ -444,9 +469,10 @@ def tune(model: torch.nn.Module, windows: Sequence[Window], config: FinetuneConf
     """
     from .losses import total_loss
 
-    start = [p.detach().clone() for p in model.parameters()]
+    params = _trainable(model, config.trainable)
+    start = [p.detach().clone() for p in params]
     scale = float(torch.cat([p.flatten() for p in start]).square().mean()) or 1.0
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    opt = torch.optim.Adam(params, lr=config.lr)
     recipe = config.recipe()
     rng = np.random.default_rng(config.seed)
     torch.manual_seed(config.seed)
@@ -460,12 +486,12 @@ def tune(model: torch.nn.Module, windows: Sequence[Window], config: FinetuneConf
         batch = crop_batch(windows, rng, config.batch_size, config.crop, config.max_instants)
         loss, parts = total_loss(_outputs(model, batch), batch, recipe)
         if config.anchor > 0:
-            drift = sum((p - p0).square().sum() for p, p0 in zip(model.parameters(), start))
+            drift = sum((p - p0).square().sum() for p, p0 in zip(params, start))
             count = sum(p.numel() for p in start)
             loss = loss + config.anchor * drift / (count * scale)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
         opt.step()
         if every is not None:
             every(step + 1)
@@ -504,6 +530,7 @@ def finetune(inputs: Sequence[str | Path], *, weights: str | Path | None = None,
     if model.channels != 1:
         raise InputError("fine-tuning takes gray weights (channels = 1)",
                          hint="fine-tune gray weights: events carry no colour")
+    _check_parts(model, config.trainable)  # before minutes of reading windows
     groups = input_groups(inputs)
     say = progress or (lambda *a: None)
     windows, notes = prepare_windows(groups, model.n, timing=model.needs.timing,
