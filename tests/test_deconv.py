@@ -1,4 +1,5 @@
-"""The motion-aware blur model, its exact adjoint, its inverse, and the EDI guard."""
+"""The motion-aware blur model, its exact adjoint, its inverse (anchored to EDI, robust to
+what the motion does not explain), and the guard against EDI."""
 
 from __future__ import annotations
 
@@ -6,12 +7,21 @@ import numpy as np
 import pytest
 import torch
 
-from trmd_cli.deconv import BlurOperator, DeconvConfig, deconvolve, noise_level
+from trmd_cli.deconv import (
+    BlurOperator,
+    DeconvConfig,
+    data_weights,
+    deconvolve,
+    guard_weights,
+    noise_level,
+    tile_gains,
+)
 from trmd_cli.errors import InputError
 from trmd_cli.events import EventStream, Exposure
 from trmd_cli.methods import EdiMethod, MotionMethod
 from trmd_cli.metrics import psnr
-from trmd_cli.motion import GlobalMotion
+from trmd_cli.motion import GlobalMotion, SampledMotion
+from trmd_cli.oracle import TruePathMethod
 from trmd_cli.simulate import MotionRanges, SensorConfig, make_sample
 
 from .helpers.data import texture
@@ -74,6 +84,100 @@ def test_noise_level_of_white_noise():
     assert noise_level(img) == pytest.approx(0.01, rel=0.1)
 
 
+def test_noise_level_ignores_planes():
+    """The 3×3 mask annihilates any plane: a steep ramp adds nothing to the noise."""
+    ys, xs = np.mgrid[0:200, 0:200]
+    ramp = (0.1 + 0.003 * xs + 0.001 * ys).astype(np.float32)
+    assert noise_level(ramp) == pytest.approx(0.0, abs=1e-6)
+    noise = 0.01 * np.random.default_rng(2).standard_normal((200, 200))
+    assert noise_level((ramp + noise).astype(np.float32)) == pytest.approx(0.01, rel=0.1)
+
+
+def test_data_weights_against_the_residual_floor():
+    """Residual at B's noise (σ = 0.01) everywhere but a block 5× higher: weight 1 away from
+    the block, 0 inside it. The same high residual everywhere — a motion that explains B
+    nowhere — is judged against B's noise, not against itself: weight 0 everywhere."""
+    rng = np.random.default_rng(3)
+    blurry = (0.5 + 0.01 * rng.standard_normal((60, 80))).astype(np.float32)
+    res = (0.01 * rng.standard_normal((60, 80))).astype(np.float32)
+    res[20:40, 30:50] *= 5
+    w = data_weights(res, blurry, (1.3, 2.2), window_px=9)
+    assert w[25:35, 35:45].max() == 0.0
+    far = np.ones_like(w, bool)
+    far[10:50, 20:60] = False
+    assert w[far].mean() > 0.97
+    w = data_weights(5 * res, blurry, (1.3, 2.2), window_px=9)
+    assert w.max() == 0.0
+
+
+def test_anchor_fills_what_the_blur_erased():
+    """A 16 px horizontal sweep averages a 16 px period away: B holds none of it, so the
+    deconvolution alone cannot bring it back (17 dB, as blurry); anchored to a noisy reading
+    of the frame (EDI's part; 34 dB) it comes back from the anchor and the rest from B, better
+    than either (measured 37.6 dB)."""
+    m = GlobalMotion((16.0, 0.0), centre=((W - 1) / 2, (H - 1) / 2))
+    op = BlurOperator(m, W, H)
+    hp, wp = op.canvas
+    ys, xs = np.mgrid[0:hp, 0:wp].astype(np.float32)
+    big = (0.5 + 0.2 * np.sin(2 * np.pi * xs / 16) + 0.1 * np.cos(2 * np.pi * ys / 23))
+    big = big.astype(np.float32)
+    blurry = op.apply(torch.from_numpy(big)[None])[0].numpy()
+    sharp = big[op.pad:op.pad + H, op.pad:op.pad + W]
+    noisy = sharp + 0.02 * np.random.default_rng(0).standard_normal(sharp.shape)
+    noisy = noisy.astype(np.float32)
+    inner = (slice(4, -4), slice(20, -20))
+    alone = deconvolve(blurry, m, start=blurry).frames([0.5])[0]
+    anchored = deconvolve(blurry, m, start=blurry, anchor=noisy).frames([0.5])[0]
+    assert psnr(alone[inner], sharp[inner]) < 20
+    assert psnr(anchored[inner], sharp[inner]) > psnr(noisy[inner], sharp[inner]) + 2
+
+
+def test_guard_trusts_an_exact_motion_and_drops_a_wrong_one():
+    """B blurred by the model itself (+ σ = 0.005): along the exact motion B is explained
+    everywhere and the guard keeps the deconvolution (measured weight 0.996); along a motion
+    with velocity turned by 90° it is not (measured 0.06)."""
+    op = BlurOperator(MOTION, W, H)
+    hp, wp = op.canvas
+    rng = np.random.default_rng(5)
+    big = texture(hp, wp, seed=3).astype(np.float32)
+    sharp = big[op.pad:op.pad + H, op.pad:op.pad + W]
+    blurry = op.apply(torch.from_numpy(big)[None])[0].numpy()
+    blurry = (blurry + 0.005 * rng.standard_normal((H, W))).astype(np.float32)
+    edi = (sharp + 0.03 * rng.standard_normal(sharp.shape)).astype(np.float32)
+    d = deconvolve(blurry, MOTION, start=edi, anchor=edi)
+    assert guard_weights(d.data_weight, 2.0).mean() > 0.95
+    assert psnr(d.frames([0.5])[0], sharp) > psnr(edi, sharp) + 3
+    turned = GlobalMotion((4.0, 10.0), centre=MOTION.centre)
+    d = deconvolve(blurry, turned, start=edi, anchor=edi)
+    assert guard_weights(d.data_weight, 2.0).mean() < 0.2
+    # no confidence in the motion: nothing is kept
+    assert guard_weights(np.ones((H, W), np.float32), 1.05).max() == 0.0
+
+
+def test_tile_gains_tell_the_direction_of_time():
+    """Dots moving along MOTION, each recording 60 events: carried back by MOTION their events
+    collapse (gain > 1.5 per tile); by the time-reversed motion — which blurs B exactly as
+    MOTION does — they spread to twice the streak (gain < 1); by no motion, gain 1 exactly."""
+    rng = np.random.default_rng(0)
+    x0, y0 = rng.uniform(0, W - 1, 60), rng.uniform(0, H - 1, 60)
+    u = rng.uniform(0, 1, (60, 60))
+    x, y = MOTION.positions(u, x0[:, None], y0[:, None])
+    x, y, u = np.rint(x).ravel(), np.rint(y).ravel(), u.ravel()
+    ok = (x >= 0) & (x < W) & (y >= 0) & (y < H)
+    x, y, u = x[ok], y[ok], u[ok]
+    gains = {}
+    for name, m in (("true", MOTION),
+                    ("reversed", GlobalMotion((-10.0, -4.0), (8.0, -6.0), 0.02, 0.01,
+                                              MOTION.centre)),
+                    ("still", GlobalMotion(centre=MOTION.centre))):
+        g = tile_gains(m, x, y, u, W, H)
+        gains[name] = g[np.isfinite(g)]
+        assert gains[name].size >= 8
+    assert gains["true"].min() > 1.5
+    assert gains["reversed"].max() < 1.0 and np.median(gains["reversed"]) < 0.8
+    np.testing.assert_allclose(gains["still"], 1.0, rtol=1e-9)
+
+
 def _sample(seed, foreground):
     motion = MotionRanges(translation_px=14, rotation_deg=0.5, scale=0.01, perspective=0,
                           curvature=0.2, foreground_prob=1.0 if foreground else 0.0,
@@ -83,14 +187,37 @@ def _sample(seed, foreground):
                        sensor=SensorConfig.clean(0.2), read_noise=0.003)
 
 
+def _seq(frames, sharp):
+    return float(np.mean([psnr(a, b) for a, b in zip(frames, sharp)]))
+
+
 def test_independent_mover_falls_back_to_edi():
-    """A foreground patch moving on its own: the output is never worse than EDI."""
+    """A foreground patch moving on its own: the output is never worse than EDI, middle or
+    sequence (measured EDI 29.97 / 28.95, motion 30.08 / 29.07 dB); along the true camera
+    path the background is trusted while the patch is not (measured 32.43 / 32.23 dB)."""
     s = _sample(4, foreground=True)
     edi = EdiMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
     mot = MotionMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
+    true = TruePathMethod(motion=SampledMotion(s.motion), contrast=s.contrast)(
+        s.blurry, s.events, s.exposure)
     p_edi = psnr(edi.frames[3], s.sharp[3])
     p_mot = psnr(mot.frames[3], s.sharp[3])
     assert p_mot >= p_edi - 0.1, (p_mot, p_edi)
+    assert _seq(mot.frames, s.sharp) >= _seq(edi.frames, s.sharp) - 0.1
+    assert psnr(true.frames[3], s.sharp[3]) > p_edi + 1.5
+    assert _seq(true.frames, s.sharp) > _seq(edi.frames, s.sharp) + 1.5
+
+
+def test_exact_motion_is_trusted_without_movers():
+    """The same scene without the patch: along the true path the guard keeps the
+    deconvolution nearly everywhere (measured EDI 31.32 / 29.92, true path 36.62 / 37.37 dB,
+    middle / sequence)."""
+    s = _sample(4, foreground=False)
+    edi = EdiMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
+    true = TruePathMethod(motion=SampledMotion(s.motion), contrast=s.contrast)(
+        s.blurry, s.events, s.exposure)
+    assert psnr(true.frames[3], s.sharp[3]) > psnr(edi.frames[3], s.sharp[3]) + 4
+    assert _seq(true.frames, s.sharp) > _seq(edi.frames, s.sharp) + 5
 
 
 def test_too_few_events_give_edi_with_a_note():

@@ -27,5 +27,5 @@ def test_motion_on_the_example_is_not_worse_than_edi(tmp_path):
         img = read_image(out / "sharp.png")
         img = img.mean(-1) if img.ndim == 3 else img
         scores[method] = psnr(img, gt)
-    # measured: EDI 30.20 dB, motion 30.63 dB
-    assert scores["motion"] >= scores["edi"] - 0.1, scores
+    # measured: EDI 30.20 dB, motion 33.65 dB
+    assert scores["motion"] >= scores["edi"] + 2, scores
