@@ -9,8 +9,9 @@ deterministic and need no talking between processes while they run.
 The machinery — the stage, local worker processes, torchrun ranks, resuming — knows a plan only
 by its units, their :meth:`~Plan.phases` (a phase starts when every process has finished the
 one before), where each unit's folder goes (:meth:`~Plan.place`) and how a share of them is
-done (:meth:`~Plan.run`); ``trmd hfr`` runs through it with a plan of its own
-(:mod:`trmd_cli.hfr_batch`).
+done (:meth:`~Plan.run`) and finished (:meth:`~Plan.finish`); ``trmd hfr`` runs through it
+with a plan of its own (:mod:`trmd_cli.hfr_batch`). :func:`run_staged` is a whole run, from the
+checks of the output to the output in place, the same for every command.
 
 Frames land in a persistent *stage* beside the output, never in the output itself
 (:class:`Stage`)::
@@ -26,7 +27,8 @@ frame is complete, and a rerun with ``resume`` skips exactly those. When every u
 one process writes each recording's meta.json from the records and swaps ``out/`` in as the
 output — the output is still all-or-nothing, and equal file for file to a one-process run.
 
-Never prints: warnings travel in each :class:`ShareReport`.
+Never prints: warnings travel in each :class:`ShareReport`; :func:`run_staged` hands what it has
+to say to the caller's functions.
 """
 
 from __future__ import annotations
@@ -36,22 +38,26 @@ import json
 import os
 import re
 import shutil
-from collections.abc import Callable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import AbstractContextManager
+from dataclasses import asdict, dataclass, field, replace
+from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
 from .errors import InputError, TrmdError
 
 if TYPE_CHECKING:  # not at run time: the CLI imports this module before it knows the mode
+    from .deblur import FrameResult
     from .methods import MethodConfig
     from .read.base import ReadOptions
 
 __all__ = [
-    "Item", "Settings", "Plan", "Stage", "ShareReport", "Ranks", "ShardError", "run_meta",
-    "recordings_in", "make_plan", "prepare_stage", "run_share", "finish", "frame_folder_name",
-    "worker_threads", "ranks_from_env", "RECORDING_SUFFIXES", "Unit", "open_item", "swap_in",
-    "run_pool", "run_plan", "todo", "agreed", "joined", "recording_folders",
+    "Item", "RunSettings", "Settings", "Plan", "Stage", "ShareReport", "Ranks", "ShardError",
+    "run_meta", "recordings_in", "make_plan", "prepare_stage", "run_share", "finish",
+    "frame_folder_name", "worker_threads", "ranks_from_env", "RECORDING_SUFFIXES", "Unit",
+    "open_item", "swap_in", "run_pool", "run_plan", "todo", "agreed", "joined",
+    "recording_folders", "plan_items", "Tally", "staged", "run_staged", "Outcome",
 ]
 
 #: one piece of a run's work: (recording, frame) for deblur; plans of their own may add a tag
@@ -71,13 +77,13 @@ class ShardError(TrmdError):
 
 
 @dataclass(frozen=True)
-class Settings:
-    """What every process needs to deblur a unit, besides the plan (picklable).
+class RunSettings:
+    """What every process of a run needs to open its recordings and run its method, besides
+    the plan (picklable); a command's settings add their own.
 
     Attributes:
         config: the method. read: how to read the inputs. exposure: ``--exposure`` (file's
-            unit) or None. offset_us: exposure shift, µs. bit_depth: 8 or 16. compare: also
-            write compare.png.
+            unit) or None. offset_us: exposure shift, µs. bit_depth: PNG bit depth, 8 or 16.
     """
 
     config: MethodConfig
@@ -85,6 +91,16 @@ class Settings:
     exposure: tuple[float, float] | None = None
     offset_us: int = 0
     bit_depth: int = 8
+
+
+@dataclass(frozen=True)
+class Settings(RunSettings):
+    """What every process needs to deblur a unit, besides the plan (picklable).
+
+    Attributes:
+        compare: also write compare.png (the others: :class:`RunSettings`).
+    """
+
     compare: bool = False
 
 
@@ -108,13 +124,24 @@ class Item:
 class Plan:
     """The recordings of a run and how to deblur them; every process builds the same one.
 
-    ``settings`` is any frozen dataclass with a ``config`` (a ``MethodConfig``) and ``read``;
-    a plan of another command subclasses this one and says how its units are done."""
+    A plan of another command subclasses this one, with settings of its own (a
+    :class:`RunSettings`), and says how its units are done and finished."""
 
     items: tuple[Item, ...]
     settings: Settings
     #: the command whose stage this is: a resume by another command is refused
     command: ClassVar[str] = "deblur"
+    #: what the run's messages call its units, how a resume counts them, what making one is
+    #: called, and the progress bar's label
+    noun: ClassVar[str] = "frames"
+    counted: ClassVar[str] = "frames"
+    verb: ClassVar[str] = "deblurred"
+    label: ClassVar[str] = "deblurring"
+
+    @property
+    def output_is_folder(self) -> bool:
+        """The output is a folder (deblur: always)."""
+        return True
 
     def units(self) -> list[Unit]:
         """Every (recording, frame position) of the run, in output order."""
@@ -137,6 +164,11 @@ class Plan:
             tick: Callable[[], None] = lambda: None) -> ShareReport:
         """Do the units of ``share`` that are not complete yet (in this process)."""
         return run_share(self, stage, share, tick)
+
+    def finish(self, stage: Stage):
+        """Once every unit is complete: the output put in place from the stage (which goes).
+        Returns what the command reports (deblur: every frame's meta part, in output order)."""
+        return finish(self, stage)
 
     def share(self, rank: int, world: int,
               units: Sequence[Unit] | None = None) -> list[Unit]:
@@ -275,21 +307,36 @@ def make_plan(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
             folder name, or one holds no frame.
     """
     from .methods import make_method
+
+    s = settings
+    method = cache(lambda: make_method(s.config))  # its name, N, weights hash, precision
+    return Plan(plan_items(groups, folders, s, lambda ins, _: run_meta(
+        ins, method(), s.config, s.offset_us, s.bit_depth), warn), settings)
+
+
+def plan_items(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
+               settings: RunSettings, head: Callable[..., dict],
+               warn: Callable[[str], None] = lambda _: None) -> tuple[Item, ...]:
+    """Every recording of a new plan opened once: what its reader says given to ``warn``, it
+    checked to hold frames to share out, its meta.json head from ``head(ins, path)`` (``ins``:
+    its ``Inputs``; ``path``: its first input, for messages; it may check more and warn).
+
+    Raises:
+        InputError: two recordings share a folder name; one is one image or holds no frame.
+    """
     from .read.inputs import open_inputs
 
     check_unique(folders)
     s = settings
-    est = None
     items = []
     for paths, folder in zip(groups, folders, strict=True):
         with open_inputs(list(paths), s.read, exposure=s.exposure, offset_us=s.offset_us) as ins:
             for w in ins.warnings:
                 warn(w)
             check_shareable(ins, paths[0])
-            est = est or make_method(s.config)  # its name, N, weights hash, precision
             items.append(Item(tuple(str(p) for p in paths), folder, len(ins.source),
-                              run_meta(ins, est, s.config, s.offset_us, s.bit_depth)))
-    return Plan(tuple(items), settings)
+                              head(ins, paths[0])))
+    return tuple(items)
 
 
 class Stage:
@@ -326,6 +373,16 @@ class Stage:
         return [u for u in units if self.finished(plan, u) is None]
 
 
+def nothing_to_resume(output: Path, folder: bool) -> InputError:
+    """The error of a resume without a stage; its hint says whether ``output`` (a folder, or
+    a file when not ``folder``) looks complete."""
+    done = output.exists() and output.is_dir() == folder and (not folder
+                                                              or any(output.iterdir()))
+    return InputError("nothing to resume: no unfinished run of this output", path=output,
+                      hint="the output is complete already" if done
+                      else "run it without --resume")
+
+
 def prepare_stage(plan: Plan, output: str | Path, resume: bool) -> tuple[Stage, int]:
     """Make the stage of a new run, or check the one a resumed run continues.
 
@@ -341,10 +398,7 @@ def prepare_stage(plan: Plan, output: str | Path, resume: bool) -> tuple[Stage, 
     stage = Stage(output)
     if resume:
         if not stage.root.is_dir():
-            done = Path(output).is_dir() and any(Path(output).iterdir())
-            raise InputError("nothing to resume: no unfinished run of this output",
-                             path=output, hint="the output is complete already" if done
-                             else "run it without --resume")
+            raise nothing_to_resume(stage.output, plan.output_is_folder)
         try:
             previous = json.loads(stage.plan_file.read_text())
         except (OSError, ValueError):
@@ -388,7 +442,7 @@ class ShareReport:
 
 
 @contextlib.contextmanager
-def open_item(item: Item, settings) -> Iterator:
+def open_item(item: Item, settings: RunSettings) -> Iterator:
     """The inputs of one recording of a plan (``open_inputs``' ``Inputs``), checked to hold
     the frames they held when the plan was made.
 
@@ -407,6 +461,37 @@ def open_item(item: Item, settings) -> Iterator:
         yield ins
 
 
+class Tally:
+    """A share's :class:`ShareReport`, gathered as its units are made (in one process)."""
+
+    def __init__(self, tick: Callable[[], None] = lambda: None) -> None:
+        self.tick = tick
+        self.units = 0
+        self.warnings: list[str] = []
+        self.notes: list[tuple[tuple[int, int], str, str | None, bool]] = []
+
+    def deblurred(self, r: int, positions: Sequence[int], results: Iterable[FrameResult]
+                  ) -> Iterator[tuple[int, FrameResult]]:
+        """(k, result) of frames ``positions`` of recording ``r``, from ``results`` (theirs, in
+        order; the next made while the last is written), each one's warnings and contrast
+        note kept for the report."""
+        from .overlap import ahead
+
+        for k, res in zip(positions, ahead(results), strict=True):
+            self.warnings.extend(res.warnings)
+            self.notes.append(((r, k), res.name, res.estimate.contrast_note,
+                               bool(res.estimate.contrast_reliable)))
+            yield k, res
+
+    def made(self) -> None:
+        """One more unit complete (folder and record written)."""
+        self.units += 1
+        self.tick()
+
+    def report(self) -> ShareReport:
+        return ShareReport(self.units, tuple(self.warnings), tuple(self.notes))
+
+
 def run_share(plan: Plan, stage: Stage, share: Sequence[tuple[int, int]],
               tick: Callable[[], None] = lambda: None) -> ShareReport:
     """Deblur the units of ``share`` that are not complete yet, each frame folder renamed into
@@ -417,34 +502,26 @@ def run_share(plan: Plan, stage: Stage, share: Sequence[tuple[int, int]],
     """
     from .deblur import deblur_frames
     from .methods import make_method
-    from .overlap import ahead
     from .write import atomic_dir, write_json, write_result_folder
 
     s = plan.settings
-    todo = [u for u in share if stage.finished(plan, u) is None]
-    warnings: list[str] = []
-    notes: list[tuple[tuple[int, int], str, str | None, bool]] = []
-    est = None
-    written = 0
+    todo = stage.pending(plan, share)
+    tally = Tally(tick)
+    method = cache(lambda: make_method(s.config))
     for i, item in enumerate(plan.items):
         positions = [k for (r, k) in todo if r == i]
         if not positions:
             continue
-        est = est or make_method(s.config)
         with open_item(item, s) as ins:
-            for k, res in zip(positions, ahead(deblur_frames(ins.source.subset(positions), est)),
-                              strict=True):
-                warnings.extend(res.warnings)
-                notes.append(((i, k), res.name, res.estimate.contrast_note,
-                              bool(res.estimate.contrast_reliable)))
+            results = deblur_frames(ins.source.subset(positions), method())
+            for k, res in tally.deblurred(i, positions, results):
                 name = frame_folder_name(res.name, res.index)
                 with atomic_dir(stage.out / item.folder / name) as tmp:
                     info = write_result_folder(tmp, res, bit_depth=s.bit_depth,
                                                compare=s.compare, meta=item.meta)
                 write_json(stage.record((i, k)), {"folder": name, "info": info})
-                written += 1
-                tick()
-    return ShareReport(written, tuple(warnings), tuple(notes))
+                tally.made()
+    return tally.report()
 
 
 #: what atomic writers name their temporaries (see trmd_cli.write): left by killed processes
@@ -480,7 +557,7 @@ def swap_in(stage: Stage) -> None:
     shutil.rmtree(stage.root, ignore_errors=True)
 
 
-def finish(plan: Plan, stage: Stage, overwrite: bool) -> list[dict]:
+def finish(plan: Plan, stage: Stage) -> list[dict]:
     """Write each recording's meta.json from the records and swap the stage in as the output.
 
     Returns:
@@ -654,7 +731,6 @@ def run_pool(plan: Plan, stage: Stage, units: Sequence[Unit], jobs: int,
     """
     import multiprocessing as mp
     import queue as queues
-    from dataclasses import replace
 
     phases = [list(units)] if phases is None else [list(p) for p in phases]
     ctx = mp.get_context("spawn")
@@ -730,3 +806,145 @@ def run_plan(plan: Plan, stage: Stage, ranks: Ranks, work: Sequence[Sequence[Uni
     if jobs > 1 and sum(len(phase) for phase in work) > 1:
         return run_pool(plan, stage, [], jobs, threads, tick, phases=work)
     return [plan.run(stage, share, tick) for share in work]
+
+
+# --------------------------------------------------------------------------------------------
+# A whole run through a stage, as a command makes it
+
+
+def staged(jobs: int, resume: bool, ranks: Ranks, recordings: Sequence[Path] | None) -> bool:
+    """A run goes through a stage when it shares work out (``jobs``, torchrun), may be resumed
+    or covers several recordings; else one process writes its output aside and swaps it in."""
+    return jobs > 1 or resume or ranks.enabled or recordings is not None
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What a run through a stage did, as this process saw it.
+
+    Attributes:
+        plan: the run's plan. reports: this process's report of each phase. main: this
+            process finished the run (rank 0). summary: what ``plan.finish`` returned (None
+            where not ``main``).
+    """
+
+    plan: Plan
+    reports: tuple[ShareReport, ...]
+    main: bool
+    summary: object = None
+
+
+@contextlib.contextmanager
+def _no_progress(label: str, total: int) -> Iterator[Callable[[], None]]:
+    yield lambda: None
+
+
+def _quiet(_: str) -> None:
+    pass
+
+
+def run_staged(make: Callable[..., Plan], inputs: Sequence[Path],
+               recordings: Sequence[Path] | None, settings: RunSettings,
+               output: str | Path, *,
+               ranks: Ranks, jobs: int = 1, resume: bool = False, overwrite: bool = False,
+               guard: Sequence[Path | None] = (), suffix: str = "", folder: bool = True,
+               warn: Callable[[str], None] = _quiet, say: Callable[[str], None] = _quiet,
+               progress: Callable[[str, int], AbstractContextManager[Callable[[], None]]]
+               = _no_progress) -> Outcome:
+    """A run through a stage, from the checks of the output to the output in place: one
+    recording (``inputs``) or several (``recordings``, one output each in OUT, named after it
+    with ``suffix``), in ``jobs`` local workers or as this rank of a torchrun launch,
+    resumable.
+
+    The ranks do each step together (:func:`agreed`: when it fails on one, every one stops):
+    check the output, make the plan, prepare the stage, every phase, finish. Only rank 0
+    checks, prepares, finishes and warns of what the inputs say.
+
+    Args:
+        make: the plan's maker, ``(groups, folders, settings, warn) -> Plan``
+            (:func:`make_plan`, or a command's own). settings: the plan's settings, with the
+            threads per process still to share out (``config.threads`` None: the cores).
+        guard: what the output must never replace (the inputs, the weights). folder: the
+            output is a folder (not a file).
+        warn: what the user should hear (the inputs' warnings, the shares', the contrast notes,
+            a discarded stage). say: what the run tells (a resume's count, a rank's part).
+        progress: ``(label, total)`` → a context giving a function called after every unit;
+            rank 0's only.
+    Raises:
+        InputError: ``jobs`` under torchrun, nothing to resume, an output that may not be
+            written, bad inputs. ShardError: another rank or a worker failed.
+            KeyboardInterrupt: the run was stopped (the finished units stay for a resume).
+    """
+    from .write import check_output
+
+    if ranks.enabled and jobs > 1:
+        raise InputError(f"--jobs {jobs} under torchrun (WORLD_SIZE={ranks.world})",
+                         hint="let torchrun start the processes: --nproc_per_node K")
+    output = Path(output)
+    groups = [[p] for p in recordings] if recordings is not None else [list(inputs)]
+    folders = [f"{name}{suffix}" for name in recording_folders(recordings)] \
+        if recordings is not None else [""]
+    main = ranks.rank == 0
+    stage = Stage(output)
+    # per process: the cores of this machine shared out among its processes
+    threads = worker_threads(jobs if not ranks.enabled else ranks.local_world,
+                             settings.config.threads)
+    settings = replace(settings, config=replace(settings.config, threads=threads))
+
+    def check() -> None:
+        if not main:
+            return
+        if resume and not stage.root.is_dir():
+            raise nothing_to_resume(output, folder)
+        check_output(output, overwrite, inputs=guard)
+        if output.exists() and output.is_dir() != folder:
+            raise InputError("the output exists and is " + (
+                "a folder" if output.is_dir() else "not a folder"), path=output,
+                hint="choose another path for -o")
+
+    def prepare(plan: Plan) -> None:
+        if not main:
+            return
+        if stage.root.exists() and not resume:
+            left = len(plan.units()) - len(stage.pending(plan)) if stage.plan_file.is_file() \
+                else 0
+            warn(f"an unfinished run of {output} ({left} {plan.noun}) is discarded; --resume "
+                 "would have continued it")
+        _, before = prepare_stage(plan, output, resume)
+        if before:
+            say(f"resuming: {before} of {len(plan.units())} {plan.counted} are done already")
+
+    with joined(ranks):
+        agreed(ranks, check)
+        plan = agreed(ranks, lambda: make(groups, folders, settings, warn if main else _quiet))
+        agreed(ranks, lambda: prepare(plan))
+        try:
+            work = todo(plan, stage, ranks)
+            with (progress if main else _no_progress)(
+                    plan.label, sum(len(phase) for phase in work)) as tick:
+                reports = run_plan(plan, stage, ranks, work, jobs=jobs, threads=threads,
+                                   tick=tick)
+        except (KeyboardInterrupt, TrmdError):
+            if main and stage.plan_file.is_file():
+                warn(f"the {plan.noun} finished so far are kept in {stage.root}: rerun with "
+                     "--resume to finish")
+            raise
+        summary = agreed(ranks, lambda: plan.finish(stage) if main else None)
+
+    for line in _said(reports):
+        warn(line)
+    if not main:
+        say(f"rank {ranks.rank}: {plan.verb} {sum(r.frames for r in reports)} {plan.noun}; "
+            f"rank 0 wrote {output}")
+    return Outcome(plan, tuple(reports), main, summary)
+
+
+def _said(reports: Sequence[ShareReport]) -> list[str]:
+    """What the shares said: their warnings, then the contrast notes of all their frames, in
+    output order and told once (``ContrastNotes``)."""
+    from .deblur import ContrastNotes
+
+    notes = ContrastNotes()
+    for _, name, note, reliable in sorted(n for r in reports for n in r.contrast_notes):
+        notes.add_note(name, note, reliable)
+    return [w for r in reports for w in r.warnings] + notes.lines()

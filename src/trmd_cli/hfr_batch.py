@@ -35,16 +35,16 @@ import os
 import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from .batch import Item, Plan, ShardError, ShareReport, Stage, Unit
+from .batch import Item, Plan, RunSettings, ShardError, ShareReport, Stage, Tally, Unit
 
 if TYPE_CHECKING:
     from .methods import MethodConfig
-    from .read.base import ReadOptions
 
 __all__ = ["HfrSettings", "HfrPlan", "HfrSummary", "make_hfr_plan", "run_hfr_share",
            "finish_hfr", "hfr_meta", "timestamps_header", "OUTPUT_KINDS"]
@@ -54,23 +54,18 @@ OUTPUT_KINDS = ("frames", "mp4", "gif")
 
 
 @dataclass(frozen=True)
-class HfrSettings:
+class HfrSettings(RunSettings):
     """What every process needs to make a unit of a stream, besides the plan (picklable).
 
     Attributes:
         config: the method (``settle_contrast`` on when gaps are filled; binned items turn it
-            off). read: how to read the inputs. exposure: ``--exposure`` (file's unit) or
-            None. offset_us: exposure shift, µs. bit_depth: 8 or 16 (PNG frames).
+            off); the others of :class:`~trmd_cli.batch.RunSettings` as there (bit_depth: of
+            PNG frames).
         per_exposure: frames per exposure (None: 2N+1). fill_gaps: fill the gaps from the
             events. max_gap_frames: most frames per gap (None: 4 × per exposure).
         fps: playback rate, frames per second. kind: one of :data:`OUTPUT_KINDS`.
     """
 
-    config: MethodConfig
-    read: ReadOptions
-    exposure: tuple[float, float] | None = None
-    offset_us: int = 0
-    bit_depth: int = 8
     per_exposure: int | None = None
     fill_gaps: bool = True
     max_gap_frames: int | None = None
@@ -91,6 +86,10 @@ class HfrPlan(Plan):
 
     settings: HfrSettings
     command: ClassVar[str] = "hfr"
+    noun: ClassVar[str] = "parts"
+    counted: ClassVar[str] = "parts (exposures and gaps)"
+    verb: ClassVar[str] = "made"
+    label: ClassVar[str] = "hfr"
 
     def gaps(self, item: Item) -> bool:
         """The gaps of ``item`` are filled (binned events have no times to fill them at)."""
@@ -129,6 +128,9 @@ class HfrPlan(Plan):
     def run(self, stage: Stage, share: Sequence[Unit],
             tick: Callable[[], None] = lambda: None) -> ShareReport:
         return run_hfr_share(self, stage, share, tick)
+
+    def finish(self, stage: Stage) -> HfrSummary:
+        return finish_hfr(self, stage)
 
 
 @dataclass(frozen=True)
@@ -193,32 +195,30 @@ def make_hfr_plan(groups: Sequence[Sequence[str | Path]], folders: Sequence[str]
         InputError: inputs that are one image, two outputs of the same name, no frame, or
             exposures out of time order.
     """
-    from .batch import check_shareable, check_unique
+    from .batch import plan_items
     from .deblur import binned_note
     from .hfr import check_time_order
-    from .methods import make_method
-    from .read.inputs import open_inputs
 
-    check_unique(folders)
     s = settings
-    methods: dict[bool, object] = {}
-    items = []
-    for paths, folder in zip(groups, folders, strict=True):
-        with open_inputs(list(paths), s.read, exposure=s.exposure, offset_us=s.offset_us) as ins:
-            for w in ins.warnings:
-                warn(w)
-            check_shareable(ins, paths[0])
-            if not ins.binned:
-                check_time_order(ins.source.exposures(), paths[0])
-            if ins.binned not in methods:  # its name, N, weights hash, precision
-                methods[ins.binned] = make_method(s.config_for(ins.binned))
-            est = methods[ins.binned]
-            if ins.binned:
-                warn(binned_note(ins.source, est, stream=True))
-            items.append(Item(tuple(str(p) for p in paths), folder, len(ins.source),
-                              hfr_meta(ins, est, per_exposure=s.per_exposure, fps=s.fps,
-                                       fill_gaps=s.fill_gaps, offset_us=s.offset_us)))
-    return HfrPlan(tuple(items), settings)
+    method = _methods(s)
+
+    def head(ins, path) -> dict:
+        if not ins.binned:
+            check_time_order(ins.source.exposures(), path)
+        est = method(ins.binned)  # its name, N, weights hash, precision
+        if ins.binned:
+            warn(binned_note(ins.source, est, stream=True))
+        return hfr_meta(ins, est, per_exposure=s.per_exposure, fps=s.fps,
+                        fill_gaps=s.fill_gaps, offset_us=s.offset_us)
+
+    return HfrPlan(plan_items(groups, folders, s, head, warn), settings)
+
+
+def _methods(settings: HfrSettings) -> Callable[[bool], object]:
+    """The method for binned or timed events, each made once, when first asked for."""
+    from .methods import make_method
+
+    return cache(lambda binned: make_method(settings.config_for(binned)))
 
 
 def run_hfr_share(plan: HfrPlan, stage: Stage, share: Sequence[Unit],
@@ -234,16 +234,12 @@ def run_hfr_share(plan: HfrPlan, stage: Stage, share: Sequence[Unit],
     from .batch import open_item
     from .deblur import deblur_frames
     from .hfr import exposure_frames, gap_frames
-    from .methods import make_method
-    from .overlap import ahead
     from .write import clipped_fraction, write_json
 
     s = plan.settings
-    todo = [u for u in share if stage.finished(plan, u) is None]
-    warnings: list[str] = []
-    notes: list[tuple[tuple[int, int], str, str | None, bool]] = []
-    methods: dict[bool, object] = {}
-    written = 0
+    todo = stage.pending(plan, share)
+    tally = Tally(tick)
+    method = _methods(s)
     for r, item in enumerate(plan.items):
         exposures = [k for (kind, i, k) in todo if kind == "x" and i == r]
         gaps = [k for (kind, i, k) in todo if kind == "g" and i == r]
@@ -252,14 +248,9 @@ def run_hfr_share(plan: HfrPlan, stage: Stage, share: Sequence[Unit],
         binned = bool(item.meta.get("binned", False))
         with open_item(item, s) as ins:
             if exposures:
-                if binned not in methods:
-                    methods[binned] = make_method(s.config_for(binned))
-                results = deblur_frames(ins.source.subset(exposures), methods[binned],
+                results = deblur_frames(ins.source.subset(exposures), method(binned),
                                         per_exposure=s.per_exposure)
-                for k, res in zip(exposures, ahead(results), strict=True):
-                    warnings.extend(res.warnings)
-                    notes.append(((r, k), res.name, res.estimate.contrast_note,
-                                  bool(res.estimate.contrast_reliable)))
+                for k, res in tally.deblurred(r, exposures, results):
                     frames = list(exposure_frames(res))
                     edge = _write_edge(res) if plan.gaps(item) else None
                     unit = ("x", r, k)
@@ -270,8 +261,7 @@ def run_hfr_share(plan: HfrPlan, stage: Stage, share: Sequence[Unit],
                         "contrast": None if c is None else float(c),
                         "clipped": clipped_fraction(res.frames),
                         "edge": None if edge is None else edge[0]})
-                    written += 1
-                    tick()
+                    tally.made()
             for k in gaps:
                 a, b = (_read_edge(stage, plan, ("x", r, j)) for j in (k, k + 1))
                 frames, capped = gap_frames(a, b, ins.source.recording,
@@ -281,9 +271,8 @@ def run_hfr_share(plan: HfrPlan, stage: Stage, share: Sequence[Unit],
                 _write_unit(stage, plan, unit, frames)
                 write_json(stage.record(unit), {"folder": f"g{k}", "rows": _rows(frames),
                                                 "capped": capped})
-                written += 1
-                tick()
-    return ShareReport(written, tuple(warnings), tuple(notes))
+                tally.made()
+    return tally.report()
 
 
 def _rows(frames) -> list[str]:

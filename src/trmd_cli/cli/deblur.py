@@ -13,13 +13,14 @@ A colour blurry frame with mono events is deblurred per channel with the same ev
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from ..errors import TrmdError
 from .boundary import err, guarded, progress_enabled, warn
 from .options import (
     Columns,
@@ -158,9 +159,7 @@ def deblur(
     written whole at the end; runs that share frames out (--jobs, torchrun) or may be resumed
     keep the finished frames in .OUT.trmd-partial beside it meanwhile, so the result is the
     same file for file as a run in one process."""
-    from rich.progress import Progress
-
-    from ..batch import frame_folder_name, ranks_from_env, recordings_in, run_meta
+    from ..batch import frame_folder_name, ranks_from_env, recordings_in, run_meta, staged
     from ..deblur import ContrastNotes, binned_note, deblur_frames
     from ..errors import InputError
     from ..methods import make_method
@@ -182,28 +181,31 @@ def deblur(
     if video is not None and not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 10")
     offset = parse_duration_us(time_offset) if time_offset else 0
+    opts = read_options(columns, one_based, time_unit, sensor, exposure_length, stamp, topics)
     if output.suffix.lower() in VIDEO_SUFFIXES and not output.is_dir():
         # a folder named like a video would surprise whoever opens it in a player
         raise InputError("-o names a video, but deblur writes a folder of frames", path=output,
                          hint=f"use -o FOLDER --video {output.name}, or `trmd hfr -o "
                          f"{output.name}`")
     ranks = ranks_from_env()
-    if jobs > 1 or resume or ranks.enabled or recordings is not None:
-        from ..batch import Settings
+    if staged(jobs, resume, ranks, recordings):
+        from ..batch import Settings, make_plan, run_staged
 
         if video is not None:
             raise InputError("--video needs every frame in order in one process: not with "
                              "--jobs, --resume, torchrun or several recordings",
                              hint="leave out --video, and make one afterwards with `trmd hfr`")
-        if ranks.enabled and jobs > 1:
-            raise InputError(f"--jobs {jobs} under torchrun (WORLD_SIZE={ranks.world})",
-                             hint="let torchrun start the processes: --nproc_per_node K")
-        opts = read_options(columns, one_based, time_unit, sensor, exposure_length, stamp,
-                            topics)
         settings = Settings(config, opts, None if exposure is None else tuple(exposure),
                             offset, bit_depth, compare)
-        _deblur_batch(inputs, recordings, output, settings, jobs=jobs, resume=resume,
-                      overwrite=overwrite, ranks=ranks, guard=[*inputs, weights])
+        run = run_staged(make_plan, inputs, recordings, settings, output, ranks=ranks,
+                         jobs=jobs, resume=resume, overwrite=overwrite,
+                         guard=[*inputs, weights], warn=warn, say=typer.echo,
+                         progress=progress_bar)
+        if run.main:
+            meta = run.plan.items[0].meta
+            _report(run.summary, meta["method"], meta["n"], output, None, False)
+            if len(run.plan.items) > 1:
+                typer.echo(f"  from {len(run.plan.items)} recordings, one folder each")
         return
     check_output(output, overwrite, inputs=[*inputs, weights])
     if output.exists() and not output.is_dir():
@@ -217,23 +219,18 @@ def deblur(
             raise InputError("--video is inside the -o folder, which deblur replaces whole",
                              path=video, hint="write the video beside the folder")
 
-    with open_inputs(inputs, read_options(columns, one_based, time_unit, sensor,
-                                          exposure_length, stamp, topics),
-                     exposure=exposure, offset_us=offset) as ins:
+    with open_inputs(inputs, opts, exposure=exposure, offset_us=offset) as ins:
         for w in ins.warnings:
             warn(w)
         est = make_method(config)
         meta = run_meta(ins, est, config, offset, bit_depth)
         said = [binned_note(ins.source, est)] if ins.binned else []
         summary: list[dict] = []
-        clipped: list[float] = []
         notes = ContrastNotes()
         vw = VideoWriter(video, fps) if video is not None else None
         try:
-            with atomic_dir(output) as tmp, Progress(
-                    console=err, disable=not progress_enabled() or ins.single,
-                    transient=True) as bar:
-                task = bar.add_task("deblurring", total=len(ins.source))
+            with atomic_dir(output) as tmp, progress_bar("deblurring", len(ins.source),
+                                                         shown=not ins.single) as tick:
                 # the next frame is deblurred while this one is written
                 for res in ahead(deblur_frames(ins.source, est)):
                     for w in res.warnings:
@@ -246,11 +243,10 @@ def deblur(
                     info = write_result_folder(folder, res, bit_depth=bit_depth,
                                                compare=compare, meta=meta)
                     summary.append(info)
-                    clipped.append(info["clipped_fraction"])
                     if vw is not None:
                         for img in res.frames:
                             vw.append(img)
-                    bar.advance(task)
+                    tick()
                 if not summary:
                     raise InputError("no frame to deblur", hint="check the inputs")
                 if not ins.single:
@@ -264,121 +260,23 @@ def deblur(
 
     for line in [*said, *notes.lines()]:
         warn(line)
-    _report(summary, clipped, est.name, est.n, output, video, ins.single)
+    _report(summary, est.name, est.n, output, video, ins.single)
 
 
-def binned_meta(source) -> dict:
-    """What meta.json says about binned events (a ``BinnedSource``): no clock, no µs."""
-    from ..batch import binned_meta as meta
-
-    return meta(source)
-
-
-def _deblur_batch(inputs: list[Path], recordings: list[Path] | None, output: Path, settings,
-                  *, jobs: int, resume: bool, overwrite: bool, ranks, guard: list) -> None:
-    """A run through a stage (see :mod:`trmd_cli.batch`): one recording or several, in
-    ``jobs`` local processes or as one rank of a torchrun launch, resumable."""
-    from dataclasses import replace
-
+@contextlib.contextmanager
+def progress_bar(label: str, total: int, shown: bool = True) -> Iterator[Callable[[], None]]:
+    """A progress bar on stderr (on a terminal, unless not ``shown``) of ``total`` steps, gone
+    when done; gives the function that advances it one step."""
     from rich.progress import Progress
 
-    from ..batch import (
-        Stage,
-        agreed,
-        finish,
-        joined,
-        make_plan,
-        prepare_stage,
-        run_pool,
-        run_share,
-        worker_threads,
-    )
-    from ..deblur import ContrastNotes
-    from ..errors import InputError
-    from ..write import check_output
-
-    groups = [[p] for p in recordings] if recordings is not None else [inputs]
-    folders = [p.stem if p.is_file() else p.name for p in recordings] \
-        if recordings is not None else [""]
-    main = ranks.rank == 0
-    stage = Stage(output)
-    # per process: the cores of this machine shared out among its processes
-    threads = worker_threads(jobs if not ranks.enabled else ranks.local_world,
-                             settings.config.threads)
-    settings = replace(settings, config=replace(settings.config, threads=threads))
-
-    def check() -> None:
-        if not main:
-            return
-        if resume and not stage.root.is_dir():
-            raise InputError("nothing to resume: no unfinished run of this output", path=output,
-                             hint="the output is complete already" if output.is_dir()
-                             and any(output.iterdir()) else "run it without --resume")
-        check_output(output, overwrite, inputs=guard)
-
-    def prepare() -> None:
-        if not main:
-            return
-        if stage.root.exists() and not resume:
-            left = len(plan.units()) - len(stage.pending(plan)) if stage.plan_file.is_file() \
-                else 0
-            warn(f"an unfinished run of {output} ({left} frames) is discarded; --resume would "
-                 "have continued it")
-        _, before = prepare_stage(plan, output, resume)
-        if before:
-            typer.echo(f"resuming: {before} of {len(plan.units())} frames are done already")
-
-    with joined(ranks):
-        agreed(ranks, check)
-        plan = agreed(ranks, lambda: make_plan(groups, folders, settings,
-                                               warn if main else (lambda _: None)))
-        agreed(ranks, prepare)
-        reports = []
-        try:
-            with Progress(console=err, disable=not progress_enabled() or not main,
-                          transient=True) as bar:
-                if ranks.enabled:
-                    share = plan.share(ranks.rank, ranks.world)
-                    task = bar.add_task("deblurring", total=len(share))
-                    reports = agreed(ranks, lambda: [run_share(
-                        plan, stage, share, tick=lambda: bar.advance(task))])
-                else:
-                    pending = stage.pending(plan)
-                    task = bar.add_task("deblurring", total=len(pending))
-                    if jobs > 1 and len(pending) > 1:
-                        reports = run_pool(plan, stage, pending, jobs, threads,
-                                           tick=lambda: bar.advance(task))
-                    else:
-                        reports = [run_share(plan, stage, pending,
-                                             tick=lambda: bar.advance(task))]
-        except (KeyboardInterrupt, TrmdError):
-            if main and stage.plan_file.is_file():
-                warn(f"the frames finished so far are kept in {stage.root}: rerun with "
-                     "--resume to finish")
-            raise
-        summary = agreed(ranks, lambda: finish(plan, stage, overwrite) if main else None)
-
-    notes = ContrastNotes()
-    for report in reports:
-        for w in report.warnings:
-            warn(w)
-    for _, name, note, reliable in sorted(n for r in reports for n in r.contrast_notes):
-        notes.add_note(name, note, reliable)
-    for line in notes.lines():
-        warn(line)
-    mine = sum(r.frames for r in reports)
-    if not main:
-        typer.echo(f"rank {ranks.rank}: deblurred {mine} frames; rank 0 wrote {output}")
-        return
-    clipped = [s["clipped_fraction"] for s in summary]
-    meta = plan.items[0].meta
-    _report(summary, clipped, meta["method"], meta["n"], output, None, False)
-    if len(plan.items) > 1:
-        typer.echo(f"  from {len(plan.items)} recordings, one folder each")
+    with Progress(console=err, disable=not progress_enabled() or not shown,
+                  transient=True) as bar:
+        task = bar.add_task(label, total=total)
+        yield lambda: bar.advance(task)
 
 
-def _report(summary: list[dict], clipped: list[float], method: str, n: int, output: Path,
-            video: Path | None, single: bool) -> None:
+def _report(summary: list[dict], method: str, n: int, output: Path, video: Path | None,
+            single: bool) -> None:
     import numpy as np
 
     used = [s["contrast"] for s in summary if s["contrast"] is not None]
@@ -393,6 +291,7 @@ def _report(summary: list[dict], clipped: list[float], method: str, n: int, outp
                        "meta.json")
     from ..write import clipped_message
 
+    clipped = [s["clipped_fraction"] for s in summary]
     said = clipped_message(float(np.mean(clipped)) if clipped else 0.0)
     if said:
         warn(said)

@@ -28,8 +28,7 @@ from typing import Annotated
 
 import typer
 
-from ..errors import TrmdError
-from .boundary import err, guarded, progress_enabled, warn
+from .boundary import guarded, warn
 from .deblur import (
     BitDepth,
     Contrast,
@@ -39,6 +38,7 @@ from .deblur import (
     TimeOffset,
     Weights,
     method_config,
+    progress_bar,
 )
 from .options import (
     Columns,
@@ -121,9 +121,7 @@ def hfr(
     the work out (--jobs, torchrun) or may be resumed keep the finished exposures and gaps in
     .OUT.trmd-partial beside -o meanwhile; the output equals a run in one process file for
     file."""
-    from rich.progress import Progress
-
-    from ..batch import ranks_from_env, recordings_in
+    from ..batch import ranks_from_env, recordings_in, staged
     from ..deblur import ContrastNotes, binned_note, deblur_frames
     from ..errors import InputError
     from ..hfr import check_time_order, hfr_stream, timestamp_row
@@ -156,6 +154,7 @@ def hfr(
     if not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 30")
     offset = parse_duration_us(time_offset) if time_offset else 0
+    opts = read_options(columns, one_based, time_unit, sensor, exposure_length, stamp, topics)
     as_video = output.suffix.lower() in VIDEO_SUFFIXES
     if recordings is not None:
         if as_video:
@@ -171,26 +170,31 @@ def hfr(
         raise InputError(f"unknown output type {output.suffix!r}", path=output,
                          hint="use .mp4, .gif, or a folder")
     ranks = ranks_from_env()
-    if jobs > 1 or resume or ranks.enabled or recordings is not None:
-        from ..hfr_batch import HfrSettings
+    if staged(jobs, resume, ranks, recordings):
+        from ..batch import run_staged
+        from ..hfr import CAPPED_NOTE
+        from ..hfr_batch import HfrSettings, make_hfr_plan
 
-        if ranks.enabled and jobs > 1:
-            raise InputError(f"--jobs {jobs} under torchrun (WORLD_SIZE={ranks.world})",
-                             hint="let torchrun start the processes: --nproc_per_node K")
-        opts = read_options(columns, one_based, time_unit, sensor, exposure_length, stamp,
-                            topics)
         kind = kind or (output.suffix.lower()[1:] if as_video else "frames")
         settings = HfrSettings(config, opts, None if exposure is None else tuple(exposure),
                                offset, bit_depth, per_exposure, fill_gaps, max_gap_frames,
                                fps, kind)
-        _hfr_batch(inputs, recordings, output, settings, jobs=jobs, resume=resume,
-                   overwrite=overwrite, ranks=ranks, guard=[*inputs, weights])
+        run = run_staged(make_hfr_plan, inputs, recordings, settings, output, ranks=ranks,
+                         jobs=jobs, resume=resume, overwrite=overwrite,
+                         guard=[*inputs, weights],
+                         suffix="" if kind == "frames" else f".{kind}",
+                         folder=kind == "frames" or recordings is not None, warn=warn,
+                         say=typer.echo, progress=progress_bar)
+        if run.main:
+            done, meta = run.summary, run.plan.items[0].meta
+            if done.capped:
+                warn(CAPPED_NOTE)
+            _report(output, done.exposure, done.gap, done.contrasts, done.clipped,
+                    config.contrast, fps, meta["method"], meta["n"], len(run.plan.items))
         return
     check_output(output, overwrite, inputs=[*inputs, weights])
 
-    with open_inputs(inputs, read_options(columns, one_based, time_unit, sensor,
-                                          exposure_length, stamp, topics),
-                     exposure=exposure, offset_us=offset) as ins:
+    with open_inputs(inputs, opts, exposure=exposure, offset_us=offset) as ins:
         for w in ins.warnings:
             warn(w)
         if ins.binned:  # in sorted order by definition; no gaps to fill, so no c for them
@@ -213,11 +217,10 @@ def hfr(
                 if res.estimate.contrast is not None:
                     contrasts.append(res.estimate.contrast)
                 clipped.append(clipped_fraction(res.frames))
-                bar.advance(task)
+                tick()
                 yield res
 
-        with Progress(console=err, disable=not progress_enabled(), transient=True) as bar:
-            task = bar.add_task("hfr", total=len(ins.source))
+        with progress_bar("hfr", len(ins.source)) as tick:
             stream = hfr_stream(results(), ins.source.recording, fill_gaps=fill_gaps,
                                 max_gap_frames=max_gap_frames,
                                 contrast=config.contrast, notes=notes)
@@ -263,106 +266,6 @@ def _report(output: Path, exposure: int, gap: int, contrasts: Sequence[float],
                f"{gap} filling gaps) at {fps:g} fps, {method} N={n}")
     if recordings > 1:
         typer.echo(f"  from {recordings} recordings, one output each")
-
-
-def _hfr_batch(inputs: list[Path], recordings: list[Path] | None, output: Path, settings, *,
-               jobs: int, resume: bool, overwrite: bool, ranks, guard: list) -> None:
-    """A run through a stage (see :mod:`trmd_cli.hfr_batch`): one recording or several, in
-    ``jobs`` local processes or as one rank of a torchrun launch, resumable."""
-    from rich.progress import Progress
-
-    from ..batch import (
-        Stage,
-        agreed,
-        joined,
-        prepare_stage,
-        recording_folders,
-        run_plan,
-        todo,
-        worker_threads,
-    )
-    from ..deblur import ContrastNotes
-    from ..errors import InputError
-    from ..hfr import CAPPED_NOTE
-    from ..hfr_batch import finish_hfr, make_hfr_plan
-    from ..write import check_output
-
-    groups = [[p] for p in recordings] if recordings is not None else [inputs]
-    suffix = "" if settings.kind == "frames" else f".{settings.kind}"
-    folders = [f"{name}{suffix}" for name in recording_folders(recordings)] \
-        if recordings is not None else [""]
-    main = ranks.rank == 0
-    stage = Stage(output)
-    # per process: the cores of this machine shared out among its processes
-    threads = worker_threads(jobs if not ranks.enabled else ranks.local_world,
-                             settings.config.threads)
-    settings = replace(settings, config=replace(settings.config, threads=threads))
-
-    def check() -> None:
-        if not main:
-            return
-        if resume and not stage.root.is_dir():
-            done = output.exists() and (output.is_file() or any(output.iterdir()))
-            raise InputError("nothing to resume: no unfinished run of this output", path=output,
-                             hint="the output is complete already" if done
-                             else "run it without --resume")
-        check_output(output, overwrite, inputs=guard)
-        if output.exists() and output.is_dir() != (settings.kind == "frames"
-                                                   or recordings is not None):
-            raise InputError("the output exists and is " + (
-                "a folder" if output.is_dir() else "not a folder"), path=output,
-                hint="choose another path for -o")
-
-    def prepare() -> None:
-        if not main:
-            return
-        if stage.root.exists() and not resume:
-            left = len(plan.units()) - len(stage.pending(plan)) if stage.plan_file.is_file() \
-                else 0
-            warn(f"an unfinished run of {output} ({left} parts) is discarded; --resume would "
-                 "have continued it")
-        _, before = prepare_stage(plan, output, resume)
-        if before:
-            typer.echo(f"resuming: {before} of {len(plan.units())} parts (exposures and gaps) "
-                       "are done already")
-
-    with joined(ranks):
-        agreed(ranks, check)
-        plan = agreed(ranks, lambda: make_hfr_plan(groups, folders, settings,
-                                                   warn if main else (lambda _: None)))
-        agreed(ranks, prepare)
-        reports = []
-        try:
-            work = todo(plan, stage, ranks)
-            with Progress(console=err, disable=not progress_enabled() or not main,
-                          transient=True) as bar:
-                task = bar.add_task("hfr", total=sum(len(phase) for phase in work))
-                reports = run_plan(plan, stage, ranks, work, jobs=jobs, threads=threads,
-                                   tick=lambda: bar.advance(task))
-        except (KeyboardInterrupt, TrmdError):
-            if main and stage.plan_file.is_file():
-                warn(f"the parts finished so far are kept in {stage.root}: rerun with "
-                     "--resume to finish")
-            raise
-        summary = agreed(ranks, lambda: finish_hfr(plan, stage) if main else None)
-
-    notes = ContrastNotes()
-    for report in reports:
-        for w in report.warnings:
-            warn(w)
-    for _, name, note, reliable in sorted(n for r in reports for n in r.contrast_notes):
-        notes.add_note(name, note, reliable)
-    for line in notes.lines():
-        warn(line)
-    if not main:
-        typer.echo(f"rank {ranks.rank}: made {sum(r.frames for r in reports)} parts; rank 0 "
-                   f"wrote {output}")
-        return
-    if summary.capped:
-        warn(CAPPED_NOTE)
-    meta = plan.items[0].meta
-    _report(output, summary.exposure, summary.gap, summary.contrasts, summary.clipped,
-            settings.config.contrast, settings.fps, meta["method"], meta["n"], len(plan.items))
 
 
 def register(app: typer.Typer) -> None:
