@@ -89,12 +89,14 @@ def test_each_old_weights_file_loads_and_computes_what_it_computed(name, expecte
         got = net(x)
     want = expected[f"residuals/{name}"]
     assert want.abs().max() > 1.0  # a non-trivial output is compared
-    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    # float32 sums in another order on another CPU's kernels differ by a few 1e-6 on outputs
+    # above 1; a misread weight moves them by far more
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
     est = TrmdEstimator.load(_path(name), device="cpu", expect_n=1)
     frames = est(expected["blurry"][0, 0].numpy(), expected["counts"][0].numpy(), 0.2,
                  expected["levels"][0].numpy())
-    np.testing.assert_allclose(frames, expected[f"frames/{name}"].numpy(), rtol=1e-5,
-                               atol=1e-6)
+    np.testing.assert_allclose(frames, expected[f"frames/{name}"].numpy(), rtol=1e-4,
+                               atol=1e-5)
     old = OLD_VARIANT_ARGS[name]
     assert est.needs_contrast == (old.get("prior") == "edi_c")
     assert est.needs_timing == bool(old.get("timing"))
