@@ -9,6 +9,8 @@ import pytest
 from trmd_cli.edi import (
     EdiBins,
     EdiEvents,
+    PixelEvents,
+    cumsum_rows,
     edi_from_bins,
     edi_latent,
     hot_pixel_mask,
@@ -92,6 +94,91 @@ def test_size_and_contrast_errors():
     for c in (0.0, -0.1, float("nan")):
         with pytest.raises(InputError, match="contrast"):
             edi_latent(np.zeros((3, 4), np.float32), ev, Exposure(0, 10), [5], c)
+
+
+# --------------------------------------------------------------------------------------------
+# the per-pixel sort and the sparse evaluation
+
+
+def _stream_with_ties(rng, n=4000, width=23, height=17):
+    # coarse times (many events at one instant, some exactly at the window's ends and at the
+    # latent instants) and pixels that fire many times
+    t = np.sort(rng.choice(np.arange(0, 12_001, 250), n))
+    return make_stream(rng.integers(0, width, n), rng.integers(0, height, n), t,
+                       rng.integers(0, 2, n), width, height)
+
+
+def test_pixel_events_are_sorted_by_pixel_in_time_order(rng):
+    ev = _stream_with_ties(rng)
+    w = Exposure(1_000, 11_000)
+    win = PixelEvents.build(ev, w)
+    inside = (ev.t >= 1_000) & (ev.t <= 11_000)
+    flat = ev.y.astype(np.int64)[inside] * ev.width + ev.x[inside]
+    order = np.argsort(flat, kind="stable")  # the definition: by pixel, ties in time order
+    np.testing.assert_array_equal(win.pix, flat[order])
+    np.testing.assert_array_equal(win.t_rel, ev.t[inside][order] - 1_000)
+    np.testing.assert_array_equal(win.p, ev.p[inside][order])
+    np.testing.assert_array_equal(win.pixels, np.unique(flat))
+    np.testing.assert_array_equal(win.pixels[win.group], win.pix)
+    assert len(PixelEvents.build(ev, Exposure(20_000, 30_000))) == 0
+
+
+def test_levels_at_counts_the_events_up_to_each_instant(rng):
+    ev = _stream_with_ties(rng)
+    w = Exposure(1_000, 11_000)
+    prep = EdiEvents.build(ev, w)
+    # unsorted, repeated, outside [0, 1], and exactly on event times (an event at an instant
+    # counts there)
+    fr = np.array([0.5, 0.0, 1.0, 0.25, 0.5, -0.3, 1.7, 0.4321])
+    got = prep.levels_at(fr)
+    inside = (ev.t >= 1_000) & (ev.t <= 11_000)
+    t, x, y, p = ev.t[inside], ev.x[inside], ev.y[inside], ev.p[inside].astype(float)
+    for k, f in enumerate(np.clip(fr, 0, 1)):
+        expect = np.zeros((ev.height, ev.width))
+        sel = (t - 1_000) / 10_000 <= f
+        np.add.at(expect, (y[sel], x[sel]), p[sel])
+        np.testing.assert_array_equal(got[k], expect)
+    pixels, sparse = prep.sparse_levels(fr)
+    np.testing.assert_array_equal(got.reshape(len(fr), -1)[:, pixels], sparse)
+
+
+def test_latent_is_the_dense_formula(rng):
+    # exp(c·S)/J evaluated densely, with J summed interval by interval per pixel
+    ev = _stream_with_ties(rng, n=1500)
+    w = Exposure(1_000, 11_000)
+    prep = EdiEvents.build(ev, w)
+    c = 0.27
+    j = np.ones(ev.height * ev.width)
+    for pix in np.unique(prep.pix):
+        sel = prep.pix == pix
+        j[pix] = prep.lead[pix] + np.sum(prep.dur[sel] * np.exp(c * prep.level[sel]))
+    np.testing.assert_allclose(prep.integral(c).ravel(), j, rtol=1e-12)
+    fr = np.array([0.0, 0.3, 1.0])
+    b = rng.uniform(0.1, 0.9, (ev.height, ev.width)).astype(np.float32)
+    expect = b * np.exp(c * prep.levels_at(fr)) / j.reshape(ev.height, ev.width)
+    lat = prep.latent(b, fr, c)
+    assert lat.dtype == np.float32
+    np.testing.assert_allclose(lat, expect, rtol=1e-6)
+
+
+def test_a_sorted_window_gives_what_the_stream_gives(rng):
+    ev = _stream_with_ties(rng)
+    w = Exposure(1_000, 11_000)
+    win = PixelEvents.build(ev, w)
+    hot = np.zeros((ev.height, ev.width), bool)
+    hot[3, 5] = hot[10, 0] = True
+    np.testing.assert_array_equal(hot_pixel_mask(ev, w, window=win), hot_pixel_mask(ev, w))
+    a, b = EdiEvents.build(ev, w, hot), EdiEvents.build(ev, w, hot, window=win)
+    for name in ("pix", "time", "step", "level", "dur", "lead"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert not np.isin(a.pix, [3 * ev.width + 5, 10 * ev.width]).any()
+    with pytest.raises(InputError, match="window"):
+        EdiEvents.build(ev, Exposure(0, 11_000), window=win)
+
+
+def test_cumsum_rows_is_cumsum_along_the_first_axis(rng):
+    a = rng.integers(-5, 5, (7, 33))
+    np.testing.assert_array_equal(cumsum_rows(a.copy()), np.cumsum(a, axis=0))
 
 
 # --------------------------------------------------------------------------------------------

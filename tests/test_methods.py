@@ -10,6 +10,7 @@ import pytest
 
 from trmd_cli.edi import EdiBins, edi_from_bins, hot_pixel_mask
 from trmd_cli.errors import InputError
+from trmd_cli.events import make_stream
 from trmd_cli.methods import (
     METHODS,
     REGISTRY,
@@ -57,6 +58,27 @@ def test_prepare_settles_the_threshold_edi_estimates(sample):
     given = EdiMethod(N, 0.37).prepare(s.blurry, s.events, s.exposure)
     assert given.contrast == 0.37 and not given.estimated
     assert EdiMethod(N, hot_pixels=False).prepare(s.blurry, s.events, s.exposure).hot is None
+
+
+def test_prepare_keeps_the_one_sort_of_the_window_hot_pixels_included(sample):
+    s = sample
+    ev = s.events
+    # a hot pixel, so that the sort the voxels reuse and the one EDI uses differ
+    extra = 400
+    t = np.concatenate([ev.t, np.linspace(s.exposure.start_us, s.exposure.end_us, extra)
+                        .astype(np.int64)])
+    order = np.argsort(t, kind="stable")
+    hot_ev = make_stream(np.concatenate([ev.x, np.full(extra, 5)])[order],
+                         np.concatenate([ev.y, np.full(extra, 7)])[order], t[order],
+                         np.concatenate([ev.p, np.ones(extra, np.int8)])[order],
+                         ev.width, ev.height)
+    prep = EdiMethod(N).prepare(s.blurry, hot_ev, s.exposure)
+    assert prep.hot[7, 5] and prep.window.exposure == s.exposure
+    assert len(prep.window) == len(hot_ev.within(s.exposure))
+    assert prep.model.count == len(prep.window) - int((prep.window.pix == 7 * ev.width + 5).sum())
+    np.testing.assert_array_equal(scer_voxels(hot_ev, s.exposure, N, window=prep.window),
+                                  scer_voxels(hot_ev, s.exposure, N))
+    assert EdiMethod(N).prepare(s.blurry, np.zeros((4, 48, 64))).window is None
 
 
 def test_the_frame_is_deblurred_with_the_prepared_threshold(sample):

@@ -12,6 +12,7 @@ from trmd_cli.events import Exposure, make_stream
 from trmd_cli.threshold import (
     DEFAULT_CONTRAST,
     ContrastObjective,
+    _minimise,
     estimate_contrast,
     search_contrast,
 )
@@ -121,3 +122,67 @@ def test_a_threshold_beyond_the_search_range_is_flagged(samples):
     assert inside.reliable and not inside.at_bound and inside.reason is None
     low = search_contrast(s.blurry, prep, bounds=(0.3 * s.contrast, 0.6 * s.contrast))
     assert low.at_bound and low.contrast == pytest.approx(0.6 * s.contrast, rel=1e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# the search on energies known in closed form
+
+
+class _Energy:
+    """An energy on log c, recording where it was evaluated."""
+
+    def __init__(self, f) -> None:
+        self.f, self.points = f, []
+
+    def __call__(self, x: float) -> float:
+        self.points.append(x)
+        return self.f(x)
+
+
+def test_search_finds_the_minimum_of_a_parabola_exactly():
+    # a parabola in log c: the final parabola through three of its points is the curve itself
+    lo, hi = np.log(0.05), np.log(1.0)
+    for c_true in (0.07, 0.2, 0.31, 0.8):
+        e = _Energy(lambda x, m=np.log(c_true): 0.4 + (x - m) ** 2)
+        x, f, at_bound = _minimise(e, lo, hi)
+        assert np.exp(x) == pytest.approx(c_true, rel=1e-9) and not at_bound
+        # 5 coarse points and two rounds of two: 9 evaluations, each point once, none outside
+        # the range (near an end, 0.07 and 0.8, a half step beyond it is left out)
+        assert len(e.points) == (9 if c_true in (0.2, 0.31) else 8) == len(set(e.points))
+        assert all(lo <= p <= hi for p in e.points)
+        assert f == pytest.approx(0.4 + min((p - np.log(c_true)) ** 2 for p in e.points))
+
+
+def test_search_on_a_skewed_energy_lands_near_its_minimum():
+    # |x − m|^1.5 is not a parabola: the refinement must still come within a few per cent
+    lo, hi = np.log(0.05), np.log(1.0)
+    for c_true in (0.12, 0.33, 0.5):
+        x, _, _ = _minimise(lambda x, m=np.log(c_true): abs(x - m) ** 1.5 + 0.1 * (x - m),
+                            lo, hi)
+        assert abs(x - np.log(c_true)) < 0.06
+
+
+def test_search_keeps_the_lower_of_two_basins_the_coarse_grid_sees():
+    # two dips: a shallow one near c = 0.08, the deeper one near c = 0.45
+    lo, hi = np.log(0.05), np.log(1.0)
+
+    def two_basins(x):
+        return 1.0 - 0.5 * np.exp(-((x - np.log(0.08)) / 0.4) ** 2) \
+            - 0.8 * np.exp(-((x - np.log(0.45)) / 0.4) ** 2)
+
+    x, _, _ = _minimise(two_basins, lo, hi)
+    assert np.exp(x) == pytest.approx(0.45, rel=0.05)
+
+
+def test_a_minimum_at_the_end_of_the_range_is_flagged():
+    lo, hi = np.log(0.05), np.log(1.0)
+    e = _Energy(lambda x: x)  # falls towards the low end
+    x, f, at_bound = _minimise(e, lo, hi)
+    assert x == lo and f == lo and at_bound
+    assert len(e.points) == 7  # the half steps below the range are not evaluated
+
+
+def test_search_spends_nine_evaluations_on_a_frame(samples):
+    s = samples[1]
+    est = search_contrast(s.blurry, EdiEvents.build(s.events, s.exposure))
+    assert est.reliable and est.evaluations == 9

@@ -8,12 +8,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tests.helpers.data import random_stream
+from trmd_cli.edi import PixelEvents
 from trmd_cli.errors import InputError
 from trmd_cli.events import Exposure, make_stream
 from trmd_cli.voxel import (
     event_bins,
     resample_bins,
     scer_from_bins,
+    scer_levels,
     scer_voxels,
     scer_voxels_torch,
     voxel_instants,
@@ -128,3 +130,32 @@ def test_resample_bins_of_events_equals_binning_them_coarser(rng):
     win = Exposure(0, 100_000)
     np.testing.assert_array_equal(resample_bins(event_bins(ev, win, 18), 6),
                                   event_bins(ev, win, 6))
+
+
+def test_a_sorted_window_gives_the_same_voxels_and_levels(rng):
+    # events on a coarse clock: many exactly at bin edges, latent instants and the window's end
+    n = 6000
+    t = np.sort(rng.choice(np.arange(0, 60_001, 500), n))
+    ev = make_stream(rng.integers(0, 19, n), rng.integers(0, 13, n), t, rng.integers(0, 2, n),
+                     19, 13)
+    for win in (Exposure(0, 60_000), Exposure(7_000, 43_000)):
+        sorted_ = PixelEvents.build(ev, win)
+        for n_ in (1, 3):
+            np.testing.assert_array_equal(scer_voxels(ev, win, n_, window=sorted_),
+                                          scer_voxels(ev, win, n_))
+        np.testing.assert_array_equal(event_bins(ev, win, 5, window=sorted_),
+                                      event_bins(ev, win, 5))
+        np.testing.assert_array_equal(scer_levels(ev, win, 3, window=sorted_),
+                                      scer_levels(ev, win, 3))
+    with pytest.raises(InputError, match="window"):
+        scer_levels(ev, Exposure(0, 50_000), 3, window=PixelEvents.build(ev, Exposure(0, 60_000)))
+
+
+def test_levels_interpolate_between_events_by_hand():
+    # one pixel, exposure 0..600 µs, N = 1 (instants 0, 300, 600): events +1 at 100, +1 at 400.
+    # Λ(0) = half-way to the first event = 0.5; Λ(300) = 1 + (300−100)/(400−100) = 1.667;
+    # Λ(600) = 2 (stays at the level reached). Output: Λ(0) − Λ(300), Λ(600) − Λ(300)
+    ev = _one_pixel([100, 400], [1, 1])
+    lv = scer_levels(ev, Exposure(0, 600), n=1)
+    np.testing.assert_allclose(lv[:, 0, 0], [0.5 - (1 + 2 / 3), 2 - (1 + 2 / 3)], rtol=1e-6)
+    np.testing.assert_array_equal(lv[:, 0, 1], [0, 0])

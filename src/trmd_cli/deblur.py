@@ -64,11 +64,15 @@ class FrameResult:
         return self.exposure is None
 
     @property
+    def middle_index(self) -> int:
+        """Index of the frame nearest to mid-exposure."""
+        mid = 0.5 if self.exposure is None else self.exposure.mid_us
+        return int(np.abs(self.instants_us - mid).argmin())
+
+    @property
     def middle(self) -> np.ndarray:
         """The frame nearest to mid-exposure."""
-        mid = 0.5 if self.exposure is None else self.exposure.mid_us
-        k = int(np.abs(self.instants_us - mid).argmin())
-        return self.frames[k]
+        return self.frames[self.middle_index]
 
 
 def exposure_instants(exposure: Exposure, k: int) -> np.ndarray:

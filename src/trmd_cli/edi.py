@@ -15,16 +15,20 @@ count since ``t0`` the reference cancels and every latent frame is::
     L(t) = B · exp(c·S(t)) / J,        J = (1/T) Σ_intervals Δt_i · exp(c·S_i)
 
 This module computes that for all pixels at once (one sort by pixel, one ``bincount`` per ``c``:
-O(events + pixels)). A colour blurry frame with mono events is handled per channel: the ratio
-``exp(c·S)/J`` is the same for the three channels (events carry no colour).
+O(events + pixels)); the per-pixel work touches only the pixels that fired. A colour blurry
+frame with mono events is handled per channel: the ratio ``exp(c·S)/J`` is the same for the
+three channels (events carry no colour).
 
 :class:`EdiEvents` holds the per-pixel interval table of one window so that the contrast search
-in :mod:`trmd_cli.threshold` re-evaluates ``J`` cheaply for many ``c``.
+in :mod:`trmd_cli.threshold` re-evaluates ``J`` cheaply for many ``c``. It is built from a
+:class:`PixelEvents`, the window's events sorted per pixel once, which the voxels and their
+timing levels (:mod:`trmd_cli.voxel`) and the hot-pixel mask reuse.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -32,6 +36,7 @@ from .errors import InputError, ShapeError
 from .events import EventStream, Exposure
 
 __all__ = [
+    "PixelEvents",
     "EdiEvents",
     "EdiBins",
     "edi_latent",
@@ -64,7 +69,8 @@ def check_blurry(blurry: np.ndarray, width: int, height: int, path=None) -> np.n
 
 
 def hot_pixel_mask(events: EventStream, exposure: Exposure | None = None,
-                   factor: float = 8.0, min_count: int = 16) -> np.ndarray:
+                   factor: float = 8.0, min_count: int = 16, *,
+                   window: PixelEvents | None = None) -> np.ndarray:
     """Pixels firing far more than the rest: (H, W) bool, True = hot.
 
     A pixel is hot when its event count in the window exceeds both ``min_count`` and
@@ -72,12 +78,19 @@ def hot_pixel_mask(events: EventStream, exposure: Exposure | None = None,
     when its *net* signed count is also extreme (a moving edge produces many events too, but
     they go up and back down; a hot pixel drifts one way). EDI multiplies by
     ``exp(c · net count)``, so one hot pixel otherwise becomes a white or black dot.
+
+    ``window``: the events of ``exposure`` already sorted per pixel (:class:`PixelEvents`),
+    used instead of selecting them again (the counts do not depend on the order).
     """
-    ev = events if exposure is None else events.within(exposure)
     h, w = events.height, events.width
-    flat = ev.y.astype(np.int64) * w + ev.x
+    if window is not None:
+        _check_window(window, exposure)
+        flat, p = window.pix, window.p
+    else:
+        ev = events if exposure is None else events.within(exposure)
+        flat, p = ev.y.astype(np.int64) * w + ev.x, ev.p
     count = np.bincount(flat, minlength=h * w)
-    net = np.bincount(flat, weights=ev.p, minlength=h * w)
+    net = np.bincount(flat, weights=p, minlength=h * w)
     active = count[count > 0]
     if active.size < 16:
         return np.zeros((h, w), bool)
@@ -89,6 +102,87 @@ def hot_pixel_mask(events: EventStream, exposure: Exposure | None = None,
     hot = ((count > max(min_count, med + factor * mad))
            & (np.abs(net) > max(min_count / 2, nmed + factor * nmad)))
     return hot.reshape(h, w)
+
+
+@dataclass(frozen=True, eq=False)
+class PixelEvents:
+    """The events of one exposure window sorted by pixel, time order kept within each pixel.
+
+    The one per-pixel sort of a window: :class:`EdiEvents`, the voxels' timing levels
+    (:func:`trmd_cli.voxel.scer_levels`), the voxels and the hot-pixel mask all start from it.
+
+    Attributes:
+        pix: (E,) int64 flat pixel index y·W + x, non-decreasing.
+        t_rel: (E,) int64 event time minus the window's start, µs (0 … duration).
+        p: (E,) int8 polarity ±1.
+        width, height: sensor size.
+        exposure: the window (µs); only events with ``start_us ≤ t ≤ end_us`` are held.
+    """
+
+    pix: np.ndarray
+    t_rel: np.ndarray
+    p: np.ndarray
+    width: int
+    height: int
+    exposure: Exposure
+
+    @classmethod
+    def build(cls, events: EventStream, exposure: Exposure) -> PixelEvents:
+        ev = events.within(exposure)
+        w = events.width
+        flat = ev.y.astype(np.int64) * w + ev.x.astype(np.int64)
+        order = _pixel_order(flat, events.width * events.height)
+        return cls(flat[order], ev.t[order] - exposure.start_us, ev.p[order], w, events.height,
+                   exposure)
+
+    def __len__(self) -> int:
+        return len(self.pix)
+
+    @cached_property
+    def starts(self) -> np.ndarray:
+        """(U,) int64 index of each active pixel's first event (U pixels fired)."""
+        if len(self.pix) == 0:
+            return np.zeros(0, np.int64)
+        return np.flatnonzero(np.concatenate([[True], self.pix[1:] != self.pix[:-1]]))
+
+    @property
+    def pixels(self) -> np.ndarray:
+        """(U,) int64 flat index of the pixels that fired, increasing."""
+        return self.pix[self.starts]
+
+    @cached_property
+    def group(self) -> np.ndarray:
+        """(E,) int64 which active pixel (0 … U−1) each event belongs to."""
+        return np.repeat(np.arange(len(self.starts), dtype=np.int64),
+                         np.diff(np.append(self.starts, len(self.pix))))
+
+    def without(self, hot_mask: np.ndarray | None) -> PixelEvents:
+        """The same window without the events of the pixels ``hot_mask`` (H, W) marks."""
+        if hot_mask is None or not hot_mask.any() or len(self.pix) == 0:
+            return self
+        keep = ~hot_mask.reshape(-1)[self.pix]
+        return PixelEvents(self.pix[keep], self.t_rel[keep], self.p[keep], self.width,
+                           self.height, self.exposure)
+
+
+def _check_window(window: PixelEvents, exposure: Exposure | None) -> None:
+    if exposure is not None and window.exposure != exposure:
+        raise InputError(f"the sorted events are of the window {window.exposure}, not of "
+                         f"{exposure}", hint="build the PixelEvents of this exposure")
+
+
+def _pixel_order(flat: np.ndarray, n_pix: int) -> np.ndarray:
+    """The stable order of ``flat``: by pixel, ties in their given (time) order.
+
+    Sorting one packed key (pixel above, index below) gives exactly that order and is several
+    times faster than numpy's stable argsort on int64.
+    """
+    e = len(flat)
+    shift = max(int(e - 1).bit_length(), 1)
+    if e == 0 or (max(n_pix, 1) << shift) >= 1 << 62:
+        return np.argsort(flat, kind="stable")
+    key = np.sort((flat << shift) | np.arange(e, dtype=np.int64))
+    return key & ((1 << shift) - 1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,30 +215,29 @@ class EdiEvents:
 
     @classmethod
     def build(cls, events: EventStream, exposure: Exposure,
-              hot_mask: np.ndarray | None = None) -> EdiEvents:
+              hot_mask: np.ndarray | None = None, *,
+              window: PixelEvents | None = None) -> EdiEvents:
         """Sort the window's events by pixel (stable: time order kept within a pixel).
 
         ``hot_mask`` (H, W) bool drops those pixels' events (their latent stays ``B``).
+        ``window``: the same events already sorted (:class:`PixelEvents`), to skip the sort.
         """
-        ev = events.within(exposure)
-        h, w = events.height, events.width
+        if window is None:
+            window = PixelEvents.build(events, exposure)
+        else:
+            _check_window(window, exposure)
+        window = window.without(hot_mask)
+        h, w = window.height, window.width
         n_pix = h * w
-        flat = ev.y.astype(np.int64) * w + ev.x.astype(np.int64)
-        t = ev.t
-        p = ev.p
-        if hot_mask is not None and hot_mask.any():
-            keep = ~hot_mask.reshape(-1)[flat]
-            flat, t, p = flat[keep], t[keep], p[keep]
+        pix = window.pix
         T = float(exposure.duration_us)
         lead = np.ones(n_pix, np.float64)
-        if len(flat) == 0:
+        if len(pix) == 0:
             z = np.zeros(0)
             return cls(np.zeros(0, np.int64), z, z, np.zeros(0, np.int64), z, lead, w, h,
                        exposure, 0)
-        order = np.argsort(flat, kind="stable")
-        pix = flat[order]
-        ts = (t[order] - exposure.start_us).astype(np.float64) / T
-        ps = p[order].astype(np.int64)
+        ts = window.t_rel.astype(np.float64) / T
+        ps = window.p.astype(np.int64)
         new = np.empty(len(pix), bool)
         new[0] = True
         np.not_equal(pix[1:], pix[:-1], out=new[1:])
@@ -161,48 +254,115 @@ class EdiEvents:
         nxt[last] = 1.0
         dur = np.clip(nxt - ts, 0.0, None)
         lead[pix[starts]] = np.clip(ts[starts], 0.0, 1.0)
-        return cls(pix, ts, ps.astype(np.float64), level, dur, lead, w, h, exposure, len(pix))
+        out = cls(pix, ts, ps.astype(np.float64), level, dur, lead, w, h, exposure, len(pix))
+        out.__dict__["_runs"] = (pix[starts], group)  # the cached property, already at hand
+        return out
+
+    @cached_property
+    def _runs(self) -> tuple[np.ndarray, np.ndarray]:
+        """(pixels (U,) that fired, group (M,): which of them each event belongs to)."""
+        if self.count == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        new = np.empty(self.count, bool)
+        new[0] = True
+        np.not_equal(self.pix[1:], self.pix[:-1], out=new[1:])
+        return self.pix[new], np.cumsum(new) - 1
+
+    @cached_property
+    def _level_table_index(self) -> tuple[int, int, np.ndarray]:
+        """(lowest level, highest, level − lowest): each event's place in a table of exp."""
+        if self.count == 0:
+            return 0, 0, np.zeros(0, np.int64)
+        lo = int(self.level.min())
+        return lo, int(self.level.max()), self.level - lo
 
     def integral(self, contrast: float) -> np.ndarray:
         """J = (1/T) ∫ exp(c·S(t)) dt per pixel: (H, W) float64, exact."""
-        acc = np.bincount(self.pix, weights=self.dur * exp_levels(self.level, contrast),
-                          minlength=self.width * self.height)
-        return (acc + self.lead).reshape(self.height, self.width)
+        out = self.lead.copy()
+        if self.count:
+            pixels, group = self._runs
+            lo, hi, idx = self._level_table_index
+            table = _exp_table(lo, hi, contrast)
+            if table is None:
+                weights = self.dur * exp_levels(self.level, contrast)
+            else:
+                weights = self.dur * table[idx]
+            # per fired pixel, in event order: the sums of a dense bincount, on U bins not H·W
+            acc = np.bincount(group, weights=weights, minlength=len(pixels))
+            out[pixels] = acc + self.lead[pixels]
+        return out.reshape(self.height, self.width)
+
+    def sparse_levels(self, fractions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """S at instants (fractions of the window, clamped to [0, 1]) for the pixels that fired:
+        ``(pixels (U,) flat indices, levels (K, U) int64)``; every other pixel's S is 0."""
+        fr = np.clip(np.asarray(fractions, np.float64).reshape(-1), 0.0, 1.0)
+        k = len(fr)
+        pixels, group = self._runs
+        u = len(pixels)
+        if self.count == 0 or k == 0:
+            return pixels, np.zeros((k, u), np.int64)
+        order = np.argsort(fr, kind="stable")
+        sorted_fr = fr[order]
+        # the event's own time: an interval starts at the event, the step happens at it; an
+        # event counts from the first instant at or after it. Counting the instants before it
+        # is searchsorted(side="left") done as K comparisons, cheaper for a few instants
+        slot = np.zeros(self.count, np.int64)
+        for f in sorted_fr:
+            slot += self.time > f
+        # signed steps per (sorted instant, fired pixel), summed over the instants: whole
+        # numbers, so exact in any order
+        steps = np.bincount(slot * u + group, weights=self.step, minlength=(k + 1) * u)
+        s_sorted = cumsum_rows(steps.reshape(k + 1, u)[:k].astype(np.int64))
+        out = np.empty((k, u), np.int64)
+        out[order] = s_sorted
+        return pixels, out
 
     def levels_at(self, fractions: np.ndarray) -> np.ndarray:
         """S at instants given as fractions of the window (0 = start, 1 = end): (K, H, W).
 
         Only events inside the window count; instants outside ``[0, 1]`` are clamped.
         """
-        fr = np.clip(np.asarray(fractions, np.float64).reshape(-1), 0.0, 1.0)
-        k = len(fr)
-        order = np.argsort(fr, kind="stable")
-        sorted_fr = fr[order]
-        n_pix = self.width * self.height
-        if self.count == 0:
-            return np.zeros((k, self.height, self.width), np.float64)
-        # the event's own time: an interval starts at the event, the step happens at it
-        slot = np.searchsorted(sorted_fr, self.time, side="left")  # first instant at or after
-        keep = slot < k
-        counts = np.bincount(slot[keep] * n_pix + self.pix[keep], weights=self.step[keep],
-                             minlength=k * n_pix).reshape(k, n_pix)
-        np.cumsum(counts, axis=0, out=counts)
-        out = np.empty_like(counts)
-        out[order] = counts
-        return out.reshape(k, self.height, self.width)
+        pixels, s = self.sparse_levels(fractions)
+        out = np.zeros((len(s), self.width * self.height), np.float64)
+        out[:, pixels] = s
+        return out.reshape(len(s), self.height, self.width)
 
     def latent(self, blurry: np.ndarray, fractions: np.ndarray, contrast: float) -> np.ndarray:
         """``L = B · exp(c·S(t)) / J`` at the given window fractions: (K, H, W[, 3]) float32."""
         ratio = self.ratio(fractions, contrast)
         if blurry.ndim == 3:
-            return (ratio[..., None] * blurry[None]).astype(np.float32)
-        return (ratio * blurry[None]).astype(np.float32)
+            return (ratio[..., None] * blurry[None]).astype(np.float32, copy=False)
+        ratio *= blurry[None]
+        return ratio
 
     def ratio(self, fractions: np.ndarray, contrast: float) -> np.ndarray:
         """``exp(c·S(t)) / J``: (K, H, W) float32, the factor applied to the blurry frame."""
-        j = self.integral(contrast)
-        s = self.levels_at(fractions)
-        return (exp_levels(s, contrast) / j[None]).astype(np.float32)
+        j = self.integral(contrast).reshape(-1)
+        pixels, s = self.sparse_levels(fractions)
+        k = len(s)
+        # where S = 0 (every silent pixel, and fired ones between their steps) the factor is
+        # exp(0)/J = 1/J; only the fired pixels need the look-up
+        out = np.empty((k, j.size), np.float32)
+        out[:] = (1.0 / j).astype(np.float32)
+        if s.size:
+            out[:, pixels] = (exp_levels(s, contrast) / j[pixels]).astype(np.float32)
+        return out.reshape(k, self.height, self.width)
+
+
+def cumsum_rows(a: np.ndarray) -> np.ndarray:
+    """``np.cumsum(a, axis=0)`` in place, one row at a time: for a few long rows numpy's
+    cumulative sum along the first axis is several times slower than K vector additions (the
+    same additions in the same order)."""
+    for j in range(1, len(a)):
+        np.add(a[j], a[j - 1], out=a[j])
+    return a
+
+
+def _exp_table(lo: int, hi: int, contrast: float) -> np.ndarray | None:
+    """``exp(c · level)`` for the whole levels lo … hi (None when the range is too wide)."""
+    if hi - lo > 1 << 16:
+        return None
+    return np.exp(contrast * np.arange(lo, hi + 1, dtype=np.float64))
 
 
 def exp_levels(level: np.ndarray, contrast: float) -> np.ndarray:
@@ -211,9 +371,9 @@ def exp_levels(level: np.ndarray, contrast: float) -> np.ndarray:
     if level.size == 0:
         return np.ones(level.shape, np.float64)
     lo, hi = int(level.min()), int(level.max())
-    if hi - lo > 1 << 16:
+    table = _exp_table(lo, hi, contrast)
+    if table is None:
         return np.exp(contrast * level.astype(np.float64))
-    table = np.exp(contrast * np.arange(lo, hi + 1, dtype=np.float64))
     idx = level if level.dtype.kind in "iu" else np.rint(level).astype(np.int64)
     return table[idx - lo] if lo else table[idx]
 

@@ -26,7 +26,7 @@ from typing import Protocol
 
 import numpy as np
 
-from .edi import EdiBins, EdiEvents, check_blurry, hot_pixel_mask, propagate
+from .edi import EdiBins, EdiEvents, PixelEvents, check_blurry, hot_pixel_mask, propagate
 from .errors import InputError, ShapeError
 from .events import EventStream, Exposure
 from .precision import PRECISIONS
@@ -127,6 +127,9 @@ class Prepared:
         hot: (H, W) bool, the pixels whose events are ignored; None when none are.
         note: what the user should know about c: why a default was used, or that the estimate
             sits at the search range's edge; None when there is nothing to say.
+        window: the window's events sorted per pixel, hot pixels included
+            (:class:`~trmd_cli.edi.PixelEvents`: the one sort the voxels and their timing levels
+            reuse); None for binned data.
     """
 
     model: EdiEvents | EdiBins
@@ -135,6 +138,7 @@ class Prepared:
     reliable: bool = True
     hot: np.ndarray | None = None
     note: str | None = None
+    window: PixelEvents | None = None
 
     @property
     def hot_pixels(self) -> int:
@@ -249,17 +253,20 @@ class EdiMethod:
         """Sort the window's events per pixel (or integrate the bins) and settle c: the given
         one, else :func:`~trmd_cli.threshold.search_contrast` on this frame. Binned data has no
         hot-pixel mask (the bins hold no per-event information to judge by)."""
+        window = None
         if isinstance(events, EventStream):
             if exposure is None:
                 raise InputError("raw events need their exposure window")
-            hot = hot_pixel_mask(events, exposure) if self.hot_pixels else None
-            model: EdiEvents | EdiBins = EdiEvents.build(events, exposure, hot)
+            window = PixelEvents.build(events, exposure)
+            hot = hot_pixel_mask(events, exposure, window=window) if self.hot_pixels else None
+            model: EdiEvents | EdiBins = EdiEvents.build(events, exposure, hot, window=window)
         else:
             hot, model = None, EdiBins.build(_check_bins(events))
         if self.contrast is not None:
-            return Prepared(model, self.contrast, hot=hot)
+            return Prepared(model, self.contrast, hot=hot, window=window)
         est = search_contrast(blurry, model)
-        return Prepared(model, est.contrast, True, est.reliable, hot, _contrast_note(est))
+        return Prepared(model, est.contrast, True, est.reliable, hot, _contrast_note(est),
+                        window)
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         b = check_blurry(blurry, events.width, events.height)
@@ -329,8 +336,12 @@ class TrmdMethod:
         settle = self.needs.contrast or not exact.all()
         prep = self.prepare(b, events, exposure) if settle else None
         c = None if prep is None else prep.contrast
-        levels = scer_levels(events, exposure, self.n) if self.needs.timing else None
-        frames = self.model(b, scer_voxels(events, exposure, self.n), c, levels)
+        # one per-pixel sort of the window for c, the voxels and their timing levels
+        window = prep.window if prep is not None and prep.window is not None else \
+            PixelEvents.build(events, exposure)
+        levels = scer_levels(events, exposure, self.n, window=window) if self.needs.timing \
+            else None
+        frames = self.model(b, scer_voxels(events, exposure, self.n, window=window), c, levels)
         if prep is None:
             return Estimate(frames[nearest], inst, None)
         if exact.all():
@@ -373,9 +384,9 @@ class TrmdMethod:
 class MotionMethod:
     """Non-blind deconvolution of the blurry frame along the global motion the events show
     (contrast maximisation, :mod:`trmd_cli.motion`; solver and guard, :mod:`trmd_cli.deconv`),
-    blended per tile with EDI where the motion does not explain the blur. The 2N+1 frames (and
-    any other instants) are the recovered middle frame warped along the motion. c is settled as
-    EDI settles it, for the fallback."""
+    anchored to EDI's middle frame and blended with EDI where the motion does not explain the
+    blur or the events. The 2N+1 frames (and any other instants) are the recovered middle frame
+    warped along the motion. c is settled as EDI settles it, for the fallback and the anchor."""
 
     name = "motion"
     needs = MethodNeeds(contrast=True)

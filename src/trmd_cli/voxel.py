@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .edi import PixelEvents, cumsum_rows
 from .errors import InputError, check_shape
 from .events import EventStream, Exposure
 
@@ -22,14 +23,28 @@ __all__ = ["event_bins", "scer_from_bins", "bins_from_scer", "resample_bins", "s
            "scer_voxels", "scer_voxels_torch", "voxel_instants"]
 
 
-def event_bins(events: EventStream, exposure: Exposure, num_bins: int) -> np.ndarray:
+def event_bins(events: EventStream, exposure: Exposure, num_bins: int, *,
+               window: PixelEvents | None = None) -> np.ndarray:
     """Signed event counts per bin: (num_bins, H, W) float32.
 
     Events outside ``[start_us, end_us]`` are ignored; one at ``end_us`` lands in the last bin.
+    ``window``: the events of ``exposure`` already sorted per pixel
+    (:class:`~trmd_cli.edi.PixelEvents`); the counts are the same, made on the fired pixels only.
     """
     if num_bins < 1:
         raise InputError(f"num_bins must be ≥ 1, got {num_bins}")
     h, w = events.height, events.width
+    if window is not None:
+        _check_window(window, exposure)
+        out = np.zeros((num_bins, h * w), np.float32)
+        if len(window):
+            b = (window.t_rel * num_bins) // exposure.duration_us
+            np.clip(b, 0, num_bins - 1, out=b)
+            u = len(window.starts)
+            counts = np.bincount(b * u + window.group, weights=window.p,
+                                 minlength=num_bins * u)
+            out[:, window.pixels] = counts.reshape(num_bins, u)
+        return out.reshape(num_bins, h, w)
     ev = events.within(exposure)
     if len(ev) == 0:
         return np.zeros((num_bins, h, w), np.float32)
@@ -41,6 +56,12 @@ def event_bins(events: EventStream, exposure: Exposure, num_bins: int) -> np.nda
     return counts.astype(np.float32).reshape(num_bins, h, w)
 
 
+def _check_window(window: PixelEvents, exposure: Exposure) -> None:
+    if window.exposure != exposure:
+        raise InputError(f"the sorted events are of the window {window.exposure}, not of "
+                         f"{exposure}", hint="build the PixelEvents of this exposure")
+
+
 def scer_from_bins(bins):
     """SCER voxels (2N, H, W) from signed bin counts (2N, H, W); numpy or torch in, same out."""
     check_shape(bins, (None, None, None), "bins")
@@ -49,9 +70,20 @@ def scer_from_bins(bins):
         raise InputError(f"SCER needs an even number of bins (2N), got {m}")
     n = m // 2
     if isinstance(bins, np.ndarray):
-        before = -np.flip(np.cumsum(np.flip(bins[:n], 0), 0), 0)  # k = 0..N-1
-        after = np.cumsum(bins[n:], 0)  # k = N+1..2N
-        return np.concatenate([before, after], 0).astype(np.float32, copy=False)
+        # running sums one plane at a time (numpy's cumsum along the first axis is several times
+        # slower; the same additions in the same order, negated: -(x + y) = (-x) - y exactly)
+        # in the type numpy's cumsum would sum in (integers widen)
+        bins = bins.astype(np.cumsum(bins[:0, :1, :1]).dtype, copy=False)
+        out = np.empty(bins.shape, bins.dtype)  # C order whatever the input's, as before
+        if m == 0:
+            return out.astype(np.float32)
+        np.negative(bins[n - 1], out=out[n - 1])  # k = 0..N-1: minus the bins up to the middle
+        for k in range(n - 2, -1, -1):
+            np.subtract(out[k + 1], bins[k], out=out[k])
+        out[n] = bins[n]  # k = N+1..2N: the bins from the middle on
+        for k in range(n + 1, m):
+            np.add(out[k - 1], bins[k], out=out[k])
+        return out.astype(np.float32, copy=False)
     import torch
 
     before = -torch.flip(torch.cumsum(torch.flip(bins[:n], (0,)), 0), (0,))
@@ -100,11 +132,13 @@ def resample_bins(bins: np.ndarray, num_bins: int) -> np.ndarray:
     return np.tensordot(weights, b.astype(np.float64), axes=(1, 0)).astype(np.float32)
 
 
-def scer_voxels(events: EventStream, exposure: Exposure, n: int = 3) -> np.ndarray:
-    """SCER voxels (2N, H, W) float32 for one exposure window."""
+def scer_voxels(events: EventStream, exposure: Exposure, n: int = 3, *,
+                window: PixelEvents | None = None) -> np.ndarray:
+    """SCER voxels (2N, H, W) float32 for one exposure window (``window``: its events already
+    sorted per pixel, see :func:`event_bins`)."""
     if n < 1:
         raise InputError(f"N must be ≥ 1, got {n}", hint="use --n 3 (7 latent frames)")
-    return scer_from_bins(event_bins(events, exposure, 2 * n))
+    return scer_from_bins(event_bins(events, exposure, 2 * n, window=window))
 
 
 def scer_voxels_torch(x, y, t_us, p, exposure: Exposure, n: int, height: int, width: int):
@@ -128,7 +162,8 @@ def scer_voxels_torch(x, y, t_us, p, exposure: Exposure, n: int, height: int, wi
     return scer_from_bins(out.view(m, height, width))
 
 
-def scer_levels(events: EventStream, exposure: Exposure, n: int = 3) -> np.ndarray:
+def scer_levels(events: EventStream, exposure: Exposure, n: int = 3, *,
+                window: PixelEvents | None = None) -> np.ndarray:
     """SCER with sub-bin timing: (2N, H, W) float32, ``Λ(t_k) − Λ(t_N)`` for k ≠ N.
 
     SCER's counts are a staircase in time: they say how many thresholds a pixel crossed before
@@ -143,50 +178,57 @@ def scer_levels(events: EventStream, exposure: Exposure, n: int = 3) -> np.ndarr
     training augmentation does not time-reverse samples that carry levels.
 
     Instants and bin edges use the same integer arithmetic as :func:`scer_voxels`: an event
-    exactly at an instant counts as after it.
+    exactly at an instant counts as after it. ``window``: the events of ``exposure`` already
+    sorted per pixel (:class:`~trmd_cli.edi.PixelEvents`), to skip the sort.
     """
     if n < 1:
         raise InputError(f"N must be ≥ 1, got {n}", hint="use --n 3 (7 latent frames)")
     h, w = events.height, events.width
     m = 2 * n
     out = np.zeros((m, h * w), np.float32)
-    ev = events.within(exposure)
-    if len(ev) == 0:
+    if window is None:
+        window = PixelEvents.build(events, exposure)
+    else:
+        _check_window(window, exposure)
+    e = len(window)
+    if e == 0:
         return out.reshape(m, h, w)
     # times scaled by 2N, instants by the duration: instant k is exactly k·T in these units
     dur = int(exposure.duration_us)
-    rel = (ev.t - exposure.start_us) * m
-    pix = ev.y.astype(np.int64) * w + ev.x
-    e = len(rel)
-    # per pixel, in time order: the event index breaks ties (a unique key; faster than a
-    # stable sort)
-    order = np.argsort(pix * e + np.arange(e))
-    rel, pix = rel[order], pix[order]
-    p = ev.p[order].astype(np.float64)
+    rel = window.t_rel * m
+    p = window.p.astype(np.float64)
     level = np.cumsum(p)
-    count_all = np.bincount(pix, minlength=h * w)
-    uniq = np.flatnonzero(count_all)
-    count = count_all[uniq]
-    end = np.cumsum(count)
-    start = end - count
+    uniq, start, group = window.pixels, window.starts, window.group
+    u = len(uniq)
+    end = np.append(start[1:], e)
     base = np.where(start > 0, level[start - 1], 0.0)  # the running sum before each pixel
     # events of each pixel before each instant: an event exactly at instant k counts as after
     # it (bin k), as in scer_voxels
-    slot = np.repeat(np.arange(len(uniq), dtype=np.int64), count)
-    per_bin = np.bincount(slot * (m + 1) + np.minimum(rel // dur, m), minlength=len(uniq) * (m + 1))
-    before = np.cumsum(per_bin.reshape(-1, m + 1), axis=1)
-    lv = np.empty((m + 1, len(uniq)))
-    for k in range(m + 1):
-        g = k * dur
-        j = start + (before[:, k - 1] if k else 0)  # the pixel's first event at or after g
-        prev, nxt = j > start, j < end
-        jp, jn = np.maximum(j - 1, 0), np.minimum(j, e - 1)
-        sp = level[jp] - base  # the level the previous event reached
-        gap = np.maximum(rel[jn] - rel[jp], 1).astype(np.float64)
-        frac = np.clip((g - rel[jp]) / gap, 0.0, 1.0)
-        lv[k] = np.where(prev & nxt, sp + frac * p[jn], np.where(nxt, 0.5 * p[jn], sp))
+    per_bin = np.bincount(np.minimum(rel // dur, m) * u + group, minlength=(m + 1) * u)
+    before = cumsum_rows(per_bin.reshape(m + 1, u))
+    # row k: each pixel's first event at or after instant k
+    j = np.empty((m + 1, u), np.int64)
+    j[0] = start
+    np.add(start, before[:m], out=j[1:])
+    prev, nxt = j > start, j < end
+    jp = np.maximum(j - 1, 0)
+    jn = np.minimum(j, e - 1, out=j)
+    sp = level[jp] - base  # the level the previous event reached
+    rel_p = rel[jp]
+    gap = np.maximum(rel[jn] - rel_p, 1).astype(np.float64)
+    g = (np.arange(m + 1, dtype=np.int64) * dur)[:, None]
+    lv = np.subtract(g, rel_p, out=rel_p) / gap
+    np.clip(lv, 0.0, 1.0, out=lv)
+    pn = p[jn]
+    # between two events: interpolated; before the first: half-way to it; after the last: the
+    # level reached
+    lv *= pn
+    lv += sp
+    np.multiply(pn, 0.5, out=pn)
+    np.copyto(lv, pn, where=nxt & ~prev)
+    np.copyto(lv, sp, where=~nxt)
     rows = [k for k in range(m + 1) if k != n]
-    out[:, uniq] = (lv[rows] - lv[n]).astype(np.float32)
+    out[:, uniq] = lv[rows] - lv[n]
     return out.reshape(m, h, w)
 
 

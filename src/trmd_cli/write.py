@@ -18,6 +18,7 @@ import re
 import shutil
 import tempfile
 from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -415,6 +416,13 @@ def to_uint(image: np.ndarray, bit_depth: int = 8) -> np.ndarray:
 def _encode(path: Path, image: np.ndarray, bit_depth: int) -> None:
     """Encode in memory, then write the bytes ourselves: ``cv2.imwrite`` on a full disk may
     report success over a short file."""
+    data = _image_bytes(path, image, bit_depth)
+    with open_output(path) as fh:
+        fh.write(data)
+
+
+def _image_bytes(path: Path, image: np.ndarray, bit_depth: int) -> bytes:
+    """The encoded file of ``image`` in the format ``path``'s suffix names."""
     import cv2
 
     arr = image if image.dtype in (np.uint8, np.uint16) else to_uint(image, bit_depth)
@@ -427,8 +435,7 @@ def _encode(path: Path, image: np.ndarray, bit_depth: int) -> None:
     if not ok:
         raise InputError("could not encode image", path=path,
                          hint="use .png, .jpg or .tif")
-    with open_output(path) as fh:
-        fh.write(data.tobytes())
+    return data.tobytes()
 
 
 def write_image(path: str | Path, image: np.ndarray, bit_depth: int = 8) -> Path:
@@ -509,11 +516,17 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
     binned = result.exposure is None
     lines = ["# file fraction (of the exposure: 0 = start, 1 = end; binned events, no event "
              "clock)" if binned else "# file time_us (event clock)"]
-    for k, (img, t) in enumerate(zip(frames, result.instants_us, strict=True)):
-        name = f"frame_{k:0{width}d}.png"
-        write_image(folder / name, img, bit_depth)
+    names = [f"frame_{k:0{width}d}.png" for k in range(len(frames))]
+    # encoding is most of the cost and releases the GIL: two frames at a time (the files are
+    # then written one by one: the same bytes in the same files)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        encoded = list(pool.map(lambda name, img: _image_bytes(folder / name, img, bit_depth),
+                                names, frames))
+    for name, data, t in zip(names, encoded, result.instants_us, strict=True):
+        write_bytes(folder / name, data)
         lines.append(f"{name} {fmt_fraction(t) if binned else _fmt_us(t)}")
-    write_image(folder / "sharp.png", result.middle, bit_depth)
+    # the middle frame is one of those: its bytes, not a second encoding
+    write_bytes(folder / "sharp.png", encoded[result.middle_index])
     write_text(folder / "timestamps.txt", "\n".join(lines) + "\n")
     if compare:
         write_image(folder / "compare.png", strip([result.blurry, result.middle],
