@@ -34,7 +34,8 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from contextlib import ExitStack
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -204,8 +205,10 @@ def input_groups(inputs: Sequence[str | Path]) -> list[list[Path]]:
 
 
 def _luma(image: np.ndarray) -> np.ndarray:
+    from .losses import LUMA
+
     if image.ndim == 3:
-        return (image @ np.array([0.299, 0.587, 0.114], np.float32)).astype(np.float32)
+        return (image @ np.array(LUMA, np.float32)).astype(np.float32)
     return image
 
 
@@ -235,53 +238,52 @@ def prepare_windows(groups: Sequence[Sequence[str | Path]], n: int, *, timing: b
     from ..read.inputs import open_inputs
     from ..voxel import scer_levels, scer_voxels
 
-    counts: list[int] = []
     notes: list[str] = []
-    for paths in groups:
-        with open_inputs(list(paths), read_options, exposure=exposure,
-                         offset_us=offset_us) as ins:
-            if ins.binned:
-                raise InputError("binned events have no event times to estimate the motion "
-                                 "from", path=paths[0], hint="fine-tune on events with times")
-            counts.append(len(ins.source))
-            notes.extend(ins.warnings)
-    total = sum(counts)
-    # evenly over all frames of all inputs, at most max_windows
-    take = set(np.unique(np.linspace(0, total - 1, min(total, config.max_windows))
-                         .round().astype(int)).tolist()) if total else set()
     edi = EdiMethod(n, config.contrast, config.hot_pixels)
     windows: list[Window] = []
     skipped = 0
-    seen = 0
-    for paths, count in zip(groups, counts, strict=True):
-        with open_inputs(list(paths), read_options, exposure=exposure,
-                         offset_us=offset_us) as ins:
-            source_name = Path(paths[0]).name
+    # every input opened once (some readers decode a whole file to index it), kept open
+    # while the frames are counted and then read
+    with ExitStack() as stack:
+        opened = []
+        for paths in groups:
+            ins = stack.enter_context(open_inputs(list(paths), read_options, exposure=exposure,
+                                                  offset_us=offset_us))
+            if ins.binned:
+                raise InputError("binned events have no event times to estimate the motion "
+                                 "from", path=paths[0], hint="fine-tune on events with times")
+            opened.append((Path(paths[0]).name, ins))
+            notes.extend(ins.warnings)
+        total = sum(len(ins.source) for _, ins in opened)
+        # evenly over all frames of all inputs, at most max_windows
+        take = set(np.unique(np.linspace(0, total - 1, min(total, config.max_windows))
+                             .round().astype(int)).tolist()) if total else set()
+        seen = 0
+        for source_name, ins in opened:
             for i, item in enumerate(ins.source):
-                index = seen + i
-                if index not in take:
+                if seen + i not in take:
                     continue
                 frame, events = item.frame, item.events
-                window = frame.exposure
-                inside = events.within(window)
-                if len(inside) == 0:
+                span = frame.exposure
+                if len(events.within(span)) == 0:
                     skipped += 1
                     continue
                 b = _luma(np.clip(check_blurry(frame.image, events.width, events.height,
                                                frame.name), 0.0, 1.0))
-                prep = edi.prepare(b, events, window)
-                motion = estimate_motion(events, window, prep.hot)
+                prep = edi.prepare(b, events, span)
+                motion = estimate_motion(events, span, prep.hot)
                 trusted = bool(motion.confidence >= config.min_confidence)
-                teacher = _deconvolved(b, events, window, n, prep, motion, trusted) \
+                teacher = _deconvolved(b, events, span, n, prep, motion, trusted) \
                     if config.losses.get("deconv", 0) > 0 else (None, None)
+                # the per-pixel sort c was settled with serves the voxels and levels too
                 windows.append(Window(
                     f"{source_name}:{frame.name}", b.astype(np.float32),
-                    scer_voxels(events, window, n),
-                    scer_levels(events, window, n) if timing else None,
+                    scer_voxels(events, span, n, window=prep.window),
+                    scer_levels(events, span, n, window=prep.window) if timing else None,
                     float(prep.contrast), motion, trusted, *teacher))
                 if on_window is not None:
                     on_window(len(windows) + skipped, len(take))
-        seen += count
+            seen += len(ins.source)
     if skipped:
         notes.append(f"{skipped} frame(s) without events in their exposure were left out")
     if not windows:
@@ -340,17 +342,16 @@ def motion_grid(motion, fractions: np.ndarray, box: tuple[int, int, int, int]
     return grid.astype(np.float32), inside
 
 
-def _reblur_fractions(motion: GlobalMotion, width: int, height: int, cap: int) -> np.ndarray:
+def _reblur_instants(motion: GlobalMotion, width: int, height: int, cap: int) -> int:
+    """J: instants at most ½ px of motion apart, 3 ≤ J ≤ ``cap``."""
     disp = motion.max_displacement_px(width, height)
-    j = min(max(3, int(math.ceil(disp / 0.5)) + 1), cap)
-    return (np.arange(j) + 0.5) / j
+    return min(max(3, int(math.ceil(disp / 0.5)) + 1), cap)
 
 
 def _window_tensors(win: Window, box: tuple[int, int, int, int], j: int) -> dict[str, Any]:
     x0, y0, w, h = box
     n = win.n
     sl = (slice(y0, y0 + h), slice(x0, x0 + w))
-    height, width = win.blurry.shape
     fr = (np.arange(j) + 0.5) / j
     rg, rin = motion_grid(win.motion, fr, box)
     wg, win_in = motion_grid(win.motion, np.arange(2 * n + 1) / (2 * n), box)
@@ -382,7 +383,7 @@ def crop_batch(windows: Sequence[Window], rng: np.random.Generator, batch_size: 
     picks = [windows[int(i)] for i in rng.integers(0, len(windows), batch_size)]
     height, width = picks[0].blurry.shape
     cw, ch = min(crop, width), min(crop, height)
-    j = max(len(_reblur_fractions(w.motion, width, height, max_instants)) for w in picks)
+    j = max(_reblur_instants(w.motion, width, height, max_instants) for w in picks)
     items = []
     for win in picks:
         x0 = int(rng.integers(0, width - cw + 1))
@@ -394,7 +395,7 @@ def crop_batch(windows: Sequence[Window], rng: np.random.Generator, batch_size: 
 def window_batch(win: Window, max_instants: int) -> dict[str, torch.Tensor]:
     """One whole window as a batch of one."""
     height, width = win.blurry.shape
-    j = len(_reblur_fractions(win.motion, width, height, max_instants))
+    j = _reblur_instants(win.motion, width, height, max_instants)
     return _stack([_window_tensors(win, (0, 0, width, height), j)])
 
 
@@ -576,7 +577,3 @@ def finetune(inputs: Sequence[str | Path], *, weights: str | Path | None = None,
                             time.perf_counter() - started, example)
     return result, notes
 
-
-def with_steps(config: FinetuneConfig, steps: int | None) -> FinetuneConfig:
-    """``config`` with ``steps`` replaced when given."""
-    return config if steps is None else replace(config, steps=steps)

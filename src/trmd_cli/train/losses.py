@@ -25,7 +25,7 @@ import torch
 
 from ..errors import InputError
 
-__all__ = ["LOSSES", "register_loss", "total_loss", "penalty", "full_voxels",
+__all__ = ["LOSSES", "LUMA", "register_loss", "total_loss", "penalty", "full_voxels",
            "LossFn", "SUPERVISED"]
 
 LossFn = Callable[[dict, dict, object], torch.Tensor]
@@ -35,8 +35,8 @@ LOSSES: dict[str, LossFn] = {}
 #: losses that need ``batch["sharp"]``
 SUPERVISED: set[str] = set()
 
-# Rec. 601 luma: the events of an RGB scene are taken to come from its luminance
-_LUMA = (0.299, 0.587, 0.114)
+#: Rec. 601 luma: the events of an RGB scene are taken to come from its luminance
+LUMA = (0.299, 0.587, 0.114)
 
 
 def register_loss(name: str, *, supervised: bool = False) -> Callable[[LossFn], LossFn]:
@@ -51,18 +51,23 @@ def register_loss(name: str, *, supervised: bool = False) -> Callable[[LossFn], 
     return deco
 
 
-def penalty(diff: torch.Tensor, recipe) -> torch.Tensor:
-    """Mean of ρ(diff) with ρ from ``recipe.loss.penalty``: mse (d²), l1 (|d|) or
-    charbonnier (√(d² + ε²) − ε, zero at zero)."""
+def _rho(diff: torch.Tensor, recipe) -> torch.Tensor:
+    """ρ(diff) per element, ρ from ``recipe.loss.penalty``: mse (d²), l1 (|d|) or charbonnier
+    (√(d² + ε²) − ε, zero at zero)."""
     kind = recipe.loss.penalty
     if kind == "mse":
-        return diff.square().mean()
+        return diff.square()
     if kind == "l1":
-        return diff.abs().mean()
+        return diff.abs()
     if kind == "charbonnier":
         eps = recipe.loss.charbonnier_eps
-        return (diff.square() + eps * eps).sqrt().mean() - eps
+        return (diff.square() + eps * eps).sqrt() - eps
     raise InputError(f"unknown loss.penalty {kind!r}", hint="use mse, l1 or charbonnier")
+
+
+def penalty(diff: torch.Tensor, recipe) -> torch.Tensor:
+    """Mean of ρ(diff) with ρ from ``recipe.loss.penalty`` (see :func:`_rho`)."""
+    return _rho(diff, recipe).mean()
 
 
 def _sharp(batch: dict, name: str) -> torch.Tensor:
@@ -129,7 +134,7 @@ def event_consistency_loss(outputs: dict, batch: dict, recipe) -> torch.Tensor:
     """
     latent = outputs["latent"]
     if latent.shape[2] == 3:
-        w = latent.new_tensor(_LUMA).view(1, 1, 3, 1, 1)
+        w = latent.new_tensor(LUMA).view(1, 1, 3, 1, 1)
         gray = (latent * w).sum(2)
     else:
         gray = latent.mean(2)
@@ -148,14 +153,7 @@ def event_consistency_loss(outputs: dict, batch: dict, recipe) -> torch.Tensor:
 def _masked(diff: torch.Tensor, mask: torch.Tensor, recipe) -> torch.Tensor:
     """Mean of ρ(diff) (the recipe's penalty) over the pixels where ``mask`` (broadcast to
     ``diff``) is 1; 0 when no pixel is."""
-    kind = recipe.loss.penalty
-    if kind == "mse":
-        rho = diff.square()
-    elif kind == "l1":
-        rho = diff.abs()
-    else:
-        eps = recipe.loss.charbonnier_eps
-        rho = (diff.square() + eps * eps).sqrt() - eps
+    rho = _rho(diff, recipe)
     mask = mask.to(rho.dtype).expand_as(rho)
     return (rho * mask).sum() / mask.sum().clamp_min(1.0)
 
