@@ -3,19 +3,21 @@
     python bench/bench_recording.py [INPUTS …] [--method trmd] [--threads T] [--precision P]
                                     [--repeat R] [--profile]
 
-What `trmd deblur INPUTS -o OUT` does per frame after start-up — read the frame and its
-events, the threshold, voxels and timing levels, the network, the reconstruction, writing the
-result folder (the next frame deblurred while the last is written) — timed over the whole
-recording (the best of ``--repeat`` passes), against the shipped network's bare forward pass on
-a frame of the same size (median of 10, after 2 warm-up passes) and against the network's own
-time inside that pass (what it spent per frame there, under whatever else ran: on a shared
-machine the steadier ratio); the process's CPU time is given beside each wall time. OpenMP
-threads wait passively, as `trmd` sets them. The start-up (imports, loading the weights) is
-reported apart.
+What `trmd deblur INPUTS -o OUT` does per frame after start-up — the recording's contrast
+threshold (estimated once on its busiest frames; ``--contrast-scope frame``: per frame, as
+``--contrast frame``), read the frame and its events, voxels and timing levels, the network,
+the reconstruction, writing the result folder (the next frame deblurred while the last is
+written) — timed over the whole recording (the best of ``--repeat`` passes), against the
+shipped network's bare forward pass on a frame of the same size (median of 10, after 2 warm-up
+passes) and against the network's own time inside that pass (what it spent per frame there,
+under whatever else ran: on a shared machine the steadier ratio); the process's CPU time is
+given beside each wall time. OpenMP threads wait passively, as `trmd` sets them. The start-up
+(imports, loading the weights) is reported apart.
 
 ``--profile`` adds one pass without the overlap, each stage timed on its own (median over the
 frames, ms of wall time, and in brackets of the thread's CPU time, which other work on the
-machine does not inflate): reading, the per-pixel sort, the hot-pixel mask, the EDI table, the
+machine does not inflate): the recording's threshold (its whole cost shared out over the
+frames), reading, the per-pixel sort, the hot-pixel mask, the EDI table, the
 threshold search, the voxels and their timing levels, the network's forward pass, the rest of
 the method (checks, reconstruction, conversions) and writing the result folder.
 """
@@ -60,10 +62,10 @@ class _Timed:
         return _timed(self._table, "method", self._method)(*args, **kwargs)
 
 
-def profile(ins, est, tmp: Path) -> str:
+def profile(ins, est, config, tmp: Path) -> str:
     """One sequential pass with every stage timed: ``stage ms`` pairs, medians over frames."""
     from trmd_cli import methods, voxel
-    from trmd_cli.deblur import deblur_frames
+    from trmd_cli.deblur import deblur_frames, settle_recording
     from trmd_cli.write import write_result_folder
 
     per_frame: dict[str, list[float]] = defaultdict(list)
@@ -85,6 +87,10 @@ def profile(ins, est, tmp: Path) -> str:
             setattr(owner, name, timed)
         if net is not None:
             net.forward = _timed(now, "network", net.forward)
+        t, c = time.perf_counter(), time.thread_time()
+        est, _ = settle_recording(est, ins.source, config)
+        settle = ((time.perf_counter() - t) / len(ins.source),
+                  (time.thread_time() - c) / len(ins.source))
         frames = iter(deblur_frames(ins.source, _Timed(est, now)))
         stages = [k for _, _, k in patches] + ["network"]
         for i in range(len(ins.source)):
@@ -105,6 +111,7 @@ def profile(ins, est, tmp: Path) -> str:
                 now["reading" + suffix] -= method  # the frame source and the loop's checks
                 inner = sum(now.get(k + suffix, 0.0) for k in stages)
                 now["rest of method" + suffix] = method - inner
+            now["recording c"], now["recording c cpu"] = settle
             for k, v in now.items():
                 per_frame[k].append(v)
     finally:
@@ -112,8 +119,8 @@ def profile(ins, est, tmp: Path) -> str:
             setattr(owner, name, value)
         if net is not None:
             del net.forward
-    order = ["reading", "sort", "hot pixels", "EDI table", "threshold", "voxels", "levels",
-             "network", "rest of method", "writing"]
+    order = ["recording c", "reading", "sort", "hot pixels", "EDI table", "threshold", "voxels",
+             "levels", "network", "rest of method", "writing"]
 
     def ms(key: str) -> float:
         return 1e3 * float(np.median(per_frame[key]))
@@ -134,21 +141,24 @@ def main() -> None:
                     help="the network's arithmetic (auto: bfloat16 where the CPU has it)")
     ap.add_argument("--repeat", type=int, default=1, help="passes over the recording; the best")
     ap.add_argument("--profile", action="store_true", help="also time each stage")
+    ap.add_argument("--contrast-scope", default="recording", choices=["recording", "frame"],
+                    help="one threshold for the recording (trmd's default) or one per frame")
     args = ap.parse_args()
 
     t0 = time.perf_counter()
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as `trmd` sets it before torch loads
     import torch
 
-    from trmd_cli.deblur import deblur_frames
+    from trmd_cli.deblur import deblur_frames, settle_recording
     from trmd_cli.methods import MethodConfig, make_method
     from trmd_cli.overlap import ahead
     from trmd_cli.read import ReadOptions
     from trmd_cli.read.inputs import open_inputs
     from trmd_cli.write import write_result_folder
 
-    est = make_method(MethodConfig(method=args.method, threads=args.threads,
-                                   precision=args.precision))
+    config = MethodConfig(method=args.method, threads=args.threads, precision=args.precision,
+                          contrast_scope=args.contrast_scope)
+    est = make_method(config)
     start_s = time.perf_counter() - t0
     whole, inside, cpu = float("inf"), float("nan"), float("nan")
     net = est.model.model if args.method == "trmd" else None
@@ -161,7 +171,8 @@ def main() -> None:
                 frames = len(ins.source)
                 spent.clear()
                 t1, c1 = time.perf_counter(), time.process_time()
-                for i, res in enumerate(ahead(deblur_frames(ins.source, est))):
+                settled, _ = settle_recording(est, ins.source, config)
+                for i, res in enumerate(ahead(deblur_frames(ins.source, settled))):
                     folder = Path(tmp) / f"{r}_{i:06d}"
                     folder.mkdir()
                     write_result_folder(folder, res, meta={})
@@ -175,9 +186,10 @@ def main() -> None:
         stages = None
         if args.profile:
             with open_inputs(args.inputs, ReadOptions()) as ins:
-                stages = profile(ins, est, Path(tmp))
+                stages = profile(ins, est, config, Path(tmp))
     line = (f"{' '.join(p.name for p in args.inputs)}: {frames} frames {w}x{h}, {args.method}, "
-            f"{torch.get_num_threads()} threads; start-up {start_s:.2f} s; "
+            f"{torch.get_num_threads()} threads, c per {args.contrast_scope}; "
+            f"start-up {start_s:.2f} s; "
             f"whole recording {whole * 1e3:.0f} ms per frame ({1 / whole:.1f} frames/s, "
             f"CPU {cpu * 1e3:.0f} ms)")
     if args.method == "trmd":

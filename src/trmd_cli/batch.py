@@ -112,12 +112,16 @@ class Item:
         inputs: the paths given to ``open_inputs`` for it. folder: its sub-folder of the output
             (``""``: the output itself, when the run has one recording). frames: how many.
         meta: the head of its meta.json (and of each frame's).
+        contrast: its one estimated contrast threshold
+            (:class:`~trmd_cli.threshold.RecordingContrast`), settled when the plan is made so
+            that every process uses the same; None when not estimated over the recording.
     """
 
     inputs: tuple[str, ...]
     folder: str
     frames: int
     meta: dict = field(hash=False)
+    contrast: object = field(default=None, hash=False)
 
 
 @dataclass(frozen=True)
@@ -196,9 +200,27 @@ def _plain(o):
     raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
-def run_meta(ins, est, config: MethodConfig, offset_us: int, bit_depth: int) -> dict:
+def contrast_meta(config: MethodConfig, recording) -> dict:
+    """What meta.json says of the contrast threshold's origin: ``contrast_mode`` "given",
+    "recording" (one estimate, ``contrast_recording`` says from which frames) or "frame"
+    (estimated per frame, also when no frame of the recording held enough events for one
+    estimate)."""
+    if config.contrast is not None:
+        return {"contrast_mode": "given"}
+    if recording is None:
+        return {"contrast_mode": "frame"}
+    return {"contrast_mode": "recording",
+            "contrast_recording": {"contrast": recording.contrast,
+                                   "frames": list(recording.frames),
+                                   "evaluations": recording.evaluations,
+                                   "at_bound": recording.at_bound}}
+
+
+def run_meta(ins, est, config: MethodConfig, offset_us: int, bit_depth: int,
+             recording=None) -> dict:
     """The head of meta.json for a run on ``ins`` (:class:`~trmd_cli.read.inputs.Inputs`) by
-    ``est`` (a :class:`~trmd_cli.methods.Method`)."""
+    ``est`` (a :class:`~trmd_cli.methods.Method`); ``recording``: the recording's estimated
+    c (:class:`~trmd_cli.threshold.RecordingContrast`), if one was settled."""
     from . import __version__
 
     meta = {
@@ -209,7 +231,7 @@ def run_meta(ins, est, config: MethodConfig, offset_us: int, bit_depth: int) -> 
         "precision": est.precision,
         "inputs": ins.paths,
         "time_offset_us": offset_us,
-        "contrast_mode": "given" if config.contrast is not None else "auto",
+        **contrast_meta(config, recording),
         "bit_depth": bit_depth,
     }
     if ins.binned:
@@ -310,16 +332,28 @@ def make_plan(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
 
     s = settings
     method = cache(lambda: make_method(s.config))  # its name, N, weights hash, precision
-    return Plan(plan_items(groups, folders, s, lambda ins, _: run_meta(
-        ins, method(), s.config, s.offset_us, s.bit_depth), warn), settings)
+    return Plan(plan_items(groups, folders, s, lambda ins, _, rec: run_meta(
+        ins, method(), s.config, s.offset_us, s.bit_depth, rec), warn,
+        settle=lambda ins, _: settled(method(), ins.source, s.config)), settings)
+
+
+def settled(method, source, config: MethodConfig):
+    """The recording's one estimated c for ``method`` (see
+    :func:`~trmd_cli.deblur.settle_recording`), or None."""
+    from .deblur import settle_recording
+
+    return settle_recording(method, source, config)[1]
 
 
 def plan_items(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
                settings: RunSettings, head: Callable[..., dict],
-               warn: Callable[[str], None] = lambda _: None) -> tuple[Item, ...]:
+               warn: Callable[[str], None] = lambda _: None,
+               settle: Callable[..., object] | None = None) -> tuple[Item, ...]:
     """Every recording of a new plan opened once: what its reader says given to ``warn``, it
-    checked to hold frames to share out, its meta.json head from ``head(ins, path)`` (``ins``:
-    its ``Inputs``; ``path``: its first input, for messages; it may check more and warn).
+    checked to hold frames to share out, its contrast threshold settled by ``settle(ins,
+    path)`` (None: not estimated over the recording), its meta.json head from ``head(ins, path,
+    contrast)`` (``ins``: its ``Inputs``; ``path``: its first input, for messages; it may check
+    more and warn).
 
     Raises:
         InputError: two recordings share a folder name; one is one image or holds no frame.
@@ -334,8 +368,9 @@ def plan_items(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
             for w in ins.warnings:
                 warn(w)
             check_shareable(ins, paths[0])
+            contrast = None if settle is None else settle(ins, paths[0])
             items.append(Item(tuple(str(p) for p in paths), folder, len(ins.source),
-                              head(ins, paths[0])))
+                              head(ins, paths[0], contrast), contrast))
     return tuple(items)
 
 
@@ -513,7 +548,8 @@ def run_share(plan: Plan, stage: Stage, share: Sequence[tuple[int, int]],
         if not positions:
             continue
         with open_item(item, s) as ins:
-            results = deblur_frames(ins.source.subset(positions), method())
+            m = method() if item.contrast is None else method().for_recording(item.contrast)
+            results = deblur_frames(ins.source.subset(positions), m)
             for k, res in tally.deblurred(i, positions, results):
                 name = frame_folder_name(res.name, res.index)
                 with atomic_dir(stage.out / item.folder / name) as tmp:

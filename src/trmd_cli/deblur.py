@@ -7,11 +7,15 @@ long recording often miss their events.
 Binned items (:class:`~trmd_cli.read.folders.BinnedWindow`: no event times) go through the same
 loop to the method's ``from_bins``; their instants are fractions of the exposure.
 :func:`binned_note` is the one line a run on them says.
+
+Before the loop, :func:`settle_recording` gives a method one contrast threshold for the whole
+recording (one sensor, one threshold), estimated on the frames of it that hold the most events:
+steadier than an estimate per frame, and not paid for again on every frame.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,10 +23,24 @@ import numpy as np
 from .edi import check_blurry
 from .errors import InputError
 from .events import Exposure
-from .methods import Estimate, Method
+from .methods import Estimate, Method, MethodConfig, window_model
 from .read.folders import BinnedSource, BinnedWindow, FrameWindow
+from .threshold import (
+    INSTANTS,
+    MIN_EVENTS,
+    ContrastObjective,
+    RecordingContrast,
+    search_contrast_pooled,
+)
 
-__all__ = ["FrameResult", "ContrastNotes", "deblur_frames", "exposure_instants", "binned_note"]
+__all__ = ["FrameResult", "ContrastNotes", "deblur_frames", "exposure_instants", "binned_note",
+           "recording_contrast", "settle_recording", "recording_line", "RECORDING_FRAMES",
+           "RECORDING_CANDIDATES"]
+
+#: frames a recording's contrast threshold is estimated from: those with the most events
+RECORDING_FRAMES = 3
+#: the candidates for them: at most this many frames spread evenly over the recording
+RECORDING_CANDIDATES = 16
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,6 +137,114 @@ def deblur_frames(source: Iterable[FrameWindow | BinnedWindow], method: Method, 
         est = method(blurry, events, exposure, inst)
         yield FrameResult(frame.index, frame.name, blurry, exposure, est, len(inside), False,
                           (*notes, *(f"frame {frame.name}: {note}" for note in est.notes)))
+
+
+def recording_contrast(source: Sequence, *, hot_pixels: bool = True,
+                       frames: int = RECORDING_FRAMES,
+                       candidates: int = RECORDING_CANDIDATES,
+                       share_instants: bool = True) -> RecordingContrast | None:
+    """One contrast threshold for a recording: the consistency energy of
+    :mod:`trmd_cli.threshold` pooled over the ``frames`` frames with the most events among
+    ``candidates`` spread evenly over it (ties: the earlier frame), minimised as one.
+
+    Which frames are used depends on the recording only, never on which of its frames a
+    process deblurs, so every share of a split run settles the same c. Memory: ``frames + 1``
+    windows at a time. Cost: reading the candidates, and the search's evaluations on
+    ``frames`` frames.
+
+    Args:
+        source: the recording's items (:class:`FrameWindow` or :class:`BinnedWindow`), with
+            ``len`` and ``subset(positions)``.
+        hot_pixels: ignore the events of hot pixels, as the method will.
+        share_instants: the frames share out the energy's instants (frame i of n takes every
+            n-th from the i-th), so that an evaluation costs what one frame's does; else each
+            frame is measured at all of them.
+    Returns:
+        The estimate, or None when no candidate holds :data:`~trmd_cli.threshold.MIN_EVENTS`
+        events (each frame then settles its own c, as a lone frame does).
+    """
+    if frames < 1 or candidates < 1:
+        raise InputError(f"`frames` and `candidates` must be ≥ 1, got {frames}, {candidates}")
+    n = len(source)
+    if n == 0:
+        return None
+    positions = sorted({int(round(p)) for p in np.linspace(0, n - 1, min(n, candidates))})
+    kept: list[tuple[int, int, FrameWindow | BinnedWindow]] = []
+    for pos, item in zip(positions, source.subset(positions), strict=True):
+        count = _count(item)
+        if count < MIN_EVENTS:
+            continue
+        # counting is cheap; the objectives are built for the frames kept only
+        kept.append((count, -pos, item))
+        kept.sort(key=lambda k: (k[0], k[1]), reverse=True)
+        del kept[frames:]
+    kept.sort(key=lambda k: -k[1])  # frame order, for the report
+    # the frames share out the energy's instants (frame i takes every len(kept)-th from i):
+    # an evaluation then costs what one frame's does, and sees as many instants
+    step = len(kept) if share_instants else 1
+    used = [(item.frame.name, obj) for i, (_, _, item) in enumerate(kept)
+            if (obj := _objective(item, hot_pixels, INSTANTS[i % step::step])) is not None]
+    if not used:
+        return None
+    c, energy, at_bound, evaluations = search_contrast_pooled([o for _, o in used])
+    return RecordingContrast(c, tuple(name for name, _ in used), energy, evaluations, at_bound)
+
+
+def _count(item: FrameWindow | BinnedWindow) -> int:
+    """Events in an item's exposure (binned: Σ|count|, a lower bound on them)."""
+    if isinstance(item, BinnedWindow):
+        bins = item.bins
+        return int(np.abs(bins.astype(np.int64, copy=False)).sum()) if bins.dtype.kind in "iu" \
+            else int(np.abs(bins).sum())
+    exposure = item.frame.exposure
+    return len(item.events.slice(exposure.start_us, exposure.end_us + 1))
+
+
+def _objective(item: FrameWindow | BinnedWindow, hot_pixels: bool,
+               instants: np.ndarray) -> ContrastObjective | None:
+    """The threshold's objective for one item; None when, hot pixels left out, it holds too
+    few events to estimate from (or none near the instants the energy is measured at)."""
+    frame = item.frame
+    if isinstance(item, BinnedWindow):
+        bins = item.bins
+        blurry = check_blurry(frame.image, bins.shape[2], bins.shape[1], frame.name)
+        model, _, _ = window_model(bins, None, False)
+        objective = ContrastObjective.from_bins(model, _in_range(blurry, frame)[0], instants)
+    else:
+        events = item.events
+        blurry = check_blurry(frame.image, events.width, events.height, frame.name)
+        model, _, _ = window_model(events, frame.exposure, hot_pixels)
+        if model.count < MIN_EVENTS:
+            return None
+        objective = ContrastObjective.from_events(model, _in_range(blurry, frame)[0], instants)
+    return objective if objective.total > 0 else None
+
+
+def settle_recording(method: Method, source: Sequence, config: MethodConfig
+                     ) -> tuple[Method, RecordingContrast | None]:
+    """``method`` with one estimated c for the whole recording ``source`` when ``config``
+    asks for it (c not given, ``contrast_scope="recording"``) and the method uses c; else
+    ``method`` unchanged. Also gives the estimate (None: not made, or no frame held enough
+    events — every frame then settles its own c)."""
+    if config.contrast is not None or config.contrast_scope != "recording" \
+            or not method.needs.contrast:
+        return method, None
+    rec = recording_contrast(source, hot_pixels=config.hot_pixels)
+    return (method, None) if rec is None else (method.for_recording(rec), rec)
+
+
+def recording_line(rec: RecordingContrast) -> str:
+    """What a run says about its recording's threshold."""
+    from .threshold import CONTRAST_BOUNDS
+
+    shown = ", ".join(rec.frames)
+    line = (f"contrast threshold c = {rec.contrast:.3f}, estimated once for the recording from "
+            f"frame{'s' if len(rec.frames) > 1 else ''} {shown}")
+    if rec.at_bound:
+        lo, hi = CONTRAST_BOUNDS
+        line += (f" (at the edge of the search range {lo:g}–{hi:g}: the sensor's threshold "
+                 "may lie beyond it; set --contrast if you know it)")
+    return line
 
 
 def _in_range(blurry: np.ndarray, frame) -> tuple[np.ndarray, tuple[str, ...]]:

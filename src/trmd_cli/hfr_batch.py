@@ -159,23 +159,26 @@ def timestamps_header(binned: bool) -> str:
 
 
 def hfr_meta(ins, est, *, per_exposure: int | None, fps: float, fill_gaps: bool,
-             offset_us: int) -> dict:
+             offset_us: int, config: MethodConfig | None = None, recording=None) -> dict:
     """meta.json of a frames output, with ``contrast`` and ``frames`` still to fill in (their
     places kept).
 
     Args:
         ins: the :class:`~trmd_cli.read.inputs.Inputs`. est: the method run on them.
         per_exposure: frames per exposure (None: 2N+1). fps: playback rate. fill_gaps: asked
-            for. offset_us: exposure shift, µs.
+            for. offset_us: exposure shift, µs. config, recording: the method's settings and
+            the recording's one estimated c, for where c came from (left out without config).
     """
     from . import __version__
-    from .batch import binned_meta
+    from .batch import binned_meta, contrast_meta
 
     meta = {
         "tool": f"trmd {__version__}", "method": est.name, "n": est.n,
         "weights_hash": est.weights_hash, "inputs": ins.paths, "precision": est.precision,
         "per_exposure": per_exposure or 2 * est.n + 1, "fps": fps, "fill_gaps": fill_gaps,
         "time_offset_us": offset_us, "contrast": None, "frames": None}
+    if config is not None:
+        meta.update(contrast_meta(config, recording))
     if ins.binned:
         del meta["time_offset_us"]
         meta.update(fill_gaps=False, **binned_meta(ins.source))
@@ -195,23 +198,28 @@ def make_hfr_plan(groups: Sequence[Sequence[str | Path]], folders: Sequence[str]
         InputError: inputs that are one image, two outputs of the same name, no frame, or
             exposures out of time order.
     """
-    from .batch import plan_items
+    from .batch import plan_items, settled
     from .deblur import binned_note
     from .hfr import check_time_order
 
     s = settings
     method = _methods(s)
 
-    def head(ins, path) -> dict:
-        if not ins.binned:
-            check_time_order(ins.source.exposures(), path)
+    def head(ins, path, recording) -> dict:
         est = method(ins.binned)  # its name, N, weights hash, precision
         if ins.binned:
             warn(binned_note(ins.source, est, stream=True))
         return hfr_meta(ins, est, per_exposure=s.per_exposure, fps=s.fps,
-                        fill_gaps=s.fill_gaps, offset_us=s.offset_us)
+                        fill_gaps=s.fill_gaps, offset_us=s.offset_us,
+                        config=s.config_for(ins.binned), recording=recording)
 
-    return HfrPlan(plan_items(groups, folders, s, head, warn), settings)
+    def settle(ins, path):
+        # before any frame is read for the threshold
+        if not ins.binned:
+            check_time_order(ins.source.exposures(), path)
+        return settled(method(ins.binned), ins.source, s.config_for(ins.binned))
+
+    return HfrPlan(plan_items(groups, folders, s, head, warn, settle=settle), settings)
 
 
 def _methods(settings: HfrSettings) -> Callable[[bool], object]:
@@ -248,7 +256,10 @@ def run_hfr_share(plan: HfrPlan, stage: Stage, share: Sequence[Unit],
         binned = bool(item.meta.get("binned", False))
         with open_item(item, s) as ins:
             if exposures:
-                results = deblur_frames(ins.source.subset(exposures), method(binned),
+                m = method(binned)
+                if item.contrast is not None:
+                    m = m.for_recording(item.contrast)
+                results = deblur_frames(ins.source.subset(exposures), m,
                                         per_exposure=s.per_exposure)
                 for k, res in tally.deblurred(r, exposures, results):
                     frames = list(exposure_frames(res))

@@ -30,11 +30,12 @@ from .edi import EdiBins, EdiEvents, PixelEvents, check_blurry, hot_pixel_mask, 
 from .errors import InputError, ShapeError
 from .events import EventStream, Exposure
 from .precision import PRECISIONS
-from .threshold import search_contrast
+from .threshold import RecordingContrast, search_contrast
 
 __all__ = [
     "DEFAULT_METHOD",
     "DEFAULT_N",
+    "CONTRAST_SCOPES",
     "METHODS",
     "MethodConfig",
     "MethodNeeds",
@@ -47,12 +48,15 @@ __all__ = [
     "REGISTRY",
     "make_method",
     "unavailable",
+    "window_model",
 ]
 
 #: the method used when none is asked for
 DEFAULT_METHOD = "trmd"
 #: N used by EDI when none is given (2N+1 = 7 frames)
 DEFAULT_N = 3
+#: what an estimated contrast threshold is estimated over (see ``MethodConfig``)
+CONTRAST_SCOPES = ("recording", "frame")
 
 
 @dataclass(frozen=True)
@@ -62,9 +66,13 @@ class MethodConfig:
     Attributes:
         method: a name of :data:`METHODS`.
         n: 2N+1 latent frames; None = 3 for EDI, the weights' N for TRMD.
-        contrast: EDI's contrast threshold c; None = estimate it per frame. TRMD uses it as an
+        contrast: EDI's contrast threshold c; None = estimate it. TRMD uses it as an
             input when its weights take one (``prior="edi_c"``, as the shipped default) and to
             place frames at instants between its own (event integration).
+        contrast_scope: when ``contrast`` is None: ``"recording"`` — the drivers that run a
+            whole recording (``trmd deblur``, ``trmd hfr``) estimate one c for it from a few of
+            its frames (:func:`trmd_cli.deblur.settle_recording`); ``"frame"`` — every frame
+            its own. A method made from the config estimates per frame until it is settled.
         hot_pixels: ignore the events of hot pixels (see :func:`trmd_cli.edi.hot_pixel_mask`).
         weights, device, threads, precision: TRMD only (see ``TrmdEstimator.load``;
             ``precision="auto"`` runs the network in bfloat16 on CPUs that compute it natively
@@ -77,6 +85,7 @@ class MethodConfig:
     method: str = DEFAULT_METHOD
     n: int | None = None
     contrast: float | None = None
+    contrast_scope: str = "recording"
     hot_pixels: bool = True
     weights: str | Path | None = None
     device: str = "auto"
@@ -93,6 +102,9 @@ class MethodConfig:
         if self.contrast is not None and not (np.isfinite(self.contrast) and self.contrast > 0):
             raise InputError(f"`contrast` must be a positive number or 'auto', got "
                              f"{self.contrast}")
+        if self.contrast_scope not in CONTRAST_SCOPES:
+            raise InputError(f"unknown contrast scope {self.contrast_scope!r}",
+                             hint="use `contrast_scope` " + " or ".join(CONTRAST_SCOPES))
         if self.precision not in PRECISIONS:
             raise InputError(f"unknown precision {self.precision!r}",
                              hint="use `precision` " + ", ".join(PRECISIONS))
@@ -201,6 +213,11 @@ class Method(Protocol):
         2N+1 instants k/2N)."""
         ...
 
+    def for_recording(self, recording: RecordingContrast) -> Method:
+        """The method with one estimated c for every frame of a recording (the loaded parts
+        shared, not copied)."""
+        ...
+
 
 def _contrast_note(est) -> str | None:
     """What to tell the user about an estimated c (a :class:`ContrastEstimate`)."""
@@ -228,22 +245,44 @@ def _check_bins(bins: np.ndarray) -> np.ndarray:
     return bins
 
 
+def window_model(events: EventStream | np.ndarray, exposure: Exposure | None,
+                 hot_pixels: bool) -> tuple[EdiEvents | EdiBins, np.ndarray | None,
+                                            PixelEvents | None]:
+    """What every method settles first for one exposure: ``(model, hot, window)`` — EDI's
+    model of the window ready for any c, the hot-pixel mask (None when not asked for, and for
+    binned data) and the window's per-pixel sort (None for binned data).
+
+    Args:
+        events: the raw stream with ``exposure`` its window (µs), or (M, H, W) signed counts
+            of M equal bins spanning the exposure.
+    """
+    if isinstance(events, EventStream):
+        if exposure is None:
+            raise InputError("raw events need their exposure window")
+        window = PixelEvents.build(events, exposure)
+        hot = hot_pixel_mask(events, exposure, window=window) if hot_pixels else None
+        return EdiEvents.build(events, exposure, hot, window=window), hot, window
+    return EdiBins.build(_check_bins(events)), None, None
+
+
 class EdiMethod:
-    """EDI with a given or per-frame estimated contrast threshold."""
+    """EDI with a given, per-recording or per-frame estimated contrast threshold."""
 
     name = "edi"
     needs = MethodNeeds(contrast=True)
     weights_hash = None
     precision = None
     #: what the method is, for evaluation reports
-    summary = ("EDI as `trmd deblur --method edi` runs it: contrast estimated per frame, hot "
+    summary = ("EDI: contrast estimated per frame (a set's samples are independent), hot "
                "pixels ignored (binned data: events spread evenly within each bin)")
 
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
-                 hot_pixels: bool = True) -> None:
+                 hot_pixels: bool = True, *, recording: RecordingContrast | None = None) -> None:
         self.n = n
         self.contrast = contrast
         self.hot_pixels = hot_pixels
+        #: where ``contrast`` came from when it was estimated over the recording, else None
+        self.recording = recording
 
     @classmethod
     def from_config(cls, config: MethodConfig) -> EdiMethod:
@@ -251,22 +290,21 @@ class EdiMethod:
 
     def prepare(self, blurry, events, exposure=None) -> Prepared:
         """Sort the window's events per pixel (or integrate the bins) and settle c: the given
-        one, else :func:`~trmd_cli.threshold.search_contrast` on this frame. Binned data has no
+        one (or the recording's, :meth:`for_recording`), else
+        :func:`~trmd_cli.threshold.search_contrast` on this frame. Binned data has no
         hot-pixel mask (the bins hold no per-event information to judge by)."""
-        window = None
-        if isinstance(events, EventStream):
-            if exposure is None:
-                raise InputError("raw events need their exposure window")
-            window = PixelEvents.build(events, exposure)
-            hot = hot_pixel_mask(events, exposure, window=window) if self.hot_pixels else None
-            model: EdiEvents | EdiBins = EdiEvents.build(events, exposure, hot, window=window)
-        else:
-            hot, model = None, EdiBins.build(_check_bins(events))
+        model, hot, window = window_model(events, exposure, self.hot_pixels)
         if self.contrast is not None:
-            return Prepared(model, self.contrast, hot=hot, window=window)
+            return Prepared(model, self.contrast, self.recording is not None, hot=hot,
+                            window=window)
         est = search_contrast(blurry, model)
         return Prepared(model, est.contrast, True, est.reliable, hot, _contrast_note(est),
                         window)
+
+    def for_recording(self, recording: RecordingContrast) -> EdiMethod:
+        """This method with the recording's estimated c for every frame (reported as
+        estimated, with no note per frame: the run says once where it came from)."""
+        return EdiMethod(self.n, recording.contrast, self.hot_pixels, recording=recording)
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         b = check_blurry(blurry, events.width, events.height)
@@ -323,6 +361,14 @@ class TrmdMethod:
     def prepare(self, blurry, events, exposure=None) -> Prepared:
         """c settled as EDI settles it (see :meth:`EdiMethod.prepare`)."""
         return self._edi.prepare(blurry, events, exposure)
+
+    def for_recording(self, recording: RecordingContrast):
+        """This method (the same loaded parts) with the recording's c for every frame."""
+        import copy
+
+        out = copy.copy(self)
+        out._edi = self._edi.for_recording(recording)
+        return out
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         from .voxel import scer_levels, scer_voxels
@@ -414,6 +460,14 @@ class MotionMethod:
     def prepare(self, blurry, events, exposure=None) -> Prepared:
         """c settled as EDI settles it (see :meth:`EdiMethod.prepare`)."""
         return self._edi.prepare(blurry, events, exposure)
+
+    def for_recording(self, recording: RecordingContrast):
+        """This method (the same loaded parts) with the recording's c for every frame."""
+        import copy
+
+        out = copy.copy(self)
+        out._edi = self._edi.for_recording(recording)
+        return out
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         from .deconv import motion_deblur

@@ -63,7 +63,7 @@ def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
 
     Args:
         blurry: (H, W[, 3]) float32 [0, 1]; events, exposure: the stream and its window (µs).
-        contrast: c for EDI's fallback (None = estimated, as ``--contrast auto``).
+        contrast: c for EDI's fallback (None = estimated on this frame alone).
         hot_pixels: leave the events of hot pixels out.
     """
     from .deconv import motion_deblur

@@ -34,8 +34,12 @@ from .events import EventStream, Exposure
 __all__ = [
     "ContrastEstimate",
     "ContrastObjective",
+    "RecordingContrast",
     "estimate_contrast",
     "search_contrast",
+    "search_contrast_pooled",
+    "MIN_EVENTS",
+    "INSTANTS",
     "DEFAULT_CONTRAST",
     "CONTRAST_BOUNDS",
 ]
@@ -45,7 +49,8 @@ DEFAULT_CONTRAST = 0.25
 #: search range of the estimate
 CONTRAST_BOUNDS = (0.05, 1.0)
 #: instants (fractions of the exposure) at which the consistency is measured
-_INSTANTS = np.array([0.2, 0.35, 0.5, 0.65, 0.8])
+INSTANTS = np.array([0.2, 0.35, 0.5, 0.65, 0.8])
+_INSTANTS = INSTANTS
 #: half-width δ of the event window around each instant, fraction of the exposure
 _DELTA = 0.03
 #: block size (px) over which the image motion is taken as constant
@@ -55,7 +60,7 @@ _SIGMA = 1.5
 #: offset in log(L + eps): keeps dark, noisy pixels from dominating the gradients
 _EPS = 0.02
 #: fewer events than this per window → no estimate (DEFAULT_CONTRAST is used)
-_MIN_EVENTS = 2000
+MIN_EVENTS = 2000
 
 
 @dataclass(frozen=True)
@@ -78,6 +83,27 @@ class ContrastEstimate:
     evaluations: int
     at_bound: bool = False
     reason: str | None = None
+
+
+@dataclass(frozen=True)
+class RecordingContrast:
+    """One contrast threshold for a whole recording (:func:`search_contrast_pooled`): one
+    sensor, one threshold, estimated on a few of its frames together.
+
+    Attributes:
+        contrast: the chosen c.
+        frames: names of the frames it was estimated from.
+        energy: the pooled consistency energy at ``contrast``.
+        evaluations: energy evaluations spent (each one on every frame of ``frames``).
+        at_bound: the best c lies at an end of the search range (see
+            :attr:`ContrastEstimate.at_bound`).
+    """
+
+    contrast: float
+    frames: tuple[str, ...]
+    energy: float
+    evaluations: int
+    at_bound: bool = False
 
 
 class ContrastObjective:
@@ -118,8 +144,10 @@ class ContrastObjective:
             self._pixels, s = model.sparse_levels(instants)
             twice = 2 * s
             self._lookup = True
-            # per instant, the fired pixels whose S is not 0 there: the others keep the base
-            self._moved = [np.flatnonzero(row) for row in s]
+            # per instant, the fired pixels whose S is not 0 there (the others keep the base),
+            # as flat pixel indices, and their S
+            moved = [np.flatnonzero(row) for row in s]
+            self._moved_pixels = [self._pixels[m] for m in moved]
         else:
             twice = 2.0 * model.levels_at(instants)
             self._lookup = bool(np.allclose(twice, np.rint(twice), atol=1e-6))
@@ -128,6 +156,8 @@ class ContrastObjective:
             self._lo = int(min(lv.min(), 0)) if lv.size else 0
             self._hi = int(max(lv.max(), 0)) if lv.size else 0
             self.levels = (lv - self._lo).astype(np.int32)
+            if self._pixels is not None:
+                self._moved_levels = [self.levels[k, m] for k, m in enumerate(moved)]
         else:
             self.levels = (twice / 2).astype(np.float32)
         kernel = cv2.getGaussianKernel(int(2 * round(3 * _SIGMA) + 1), _SIGMA).astype(np.float32)
@@ -140,32 +170,39 @@ class ContrastObjective:
                                  [: self.hb:2, : self.wb:2])
             for c in counts]
         self.total = float(sum(b.sum() for b in self._block_sums(*(c * c for c in self.counts))))
-        # the five products of an instant, four as the channels of one image for the block sums
-        self._four = np.empty((self.hb // 2, self.wb // 2, 4), np.float32)
-        self._fifth = np.empty((self.hb // 2, self.wb // 2), np.float32)
         self.evaluations = 0
 
     @classmethod
-    def from_events(cls, prep: EdiEvents, blurry: np.ndarray) -> ContrastObjective:
+    def from_events(cls, prep: EdiEvents, blurry: np.ndarray,
+                    instants: np.ndarray | None = None) -> ContrastObjective:
+        """``instants``: fractions of the window to measure at (None: the usual five)."""
         h, w = prep.height, prep.width
+        instants = _INSTANTS if instants is None else np.asarray(instants, np.float64)
         counts = []
-        for f in _INSTANTS:
+        for f in instants:
             sel = np.abs(prep.time - f) <= _DELTA
             d_map = np.bincount(prep.pix[sel], weights=prep.step[sel], minlength=h * w)
             counts.append(d_map.reshape(h, w))
-        return cls(prep, blurry, _INSTANTS, counts)
+        return cls(prep, blurry, instants, counts)
 
     @classmethod
-    def from_bins(cls, model: EdiBins, blurry: np.ndarray) -> ContrastObjective:
-        """Instants at the centres of the bins nearest to the usual ones; counts = those bins."""
+    def from_bins(cls, model: EdiBins, blurry: np.ndarray,
+                  instants: np.ndarray | None = None) -> ContrastObjective:
+        """Instants at the centres of the bins nearest to the usual ones (or to ``instants``,
+        fractions of the exposure); counts = those bins."""
         m = model.bins.shape[0]
         f0, f1 = model.exposure
-        wanted = f0 + _INSTANTS * (f1 - f0)
+        instants = _INSTANTS if instants is None else np.asarray(instants, np.float64)
+        wanted = f0 + instants * (f1 - f0)
         idx = sorted({min(max(int(np.floor(f * m)), 0), m - 1) for f in wanted})
         instants = (np.array(idx) + 0.5) / m
         return cls(model, blurry, instants, [model.bins[j] for j in idx])
 
     def __call__(self, contrast: float) -> float:
+        return 1.0 - self.explained(contrast) / self.total
+
+    def explained(self, contrast: float) -> float:
+        """The part of ``total`` (Σ D² over the blocks) the per-block fits explain at c."""
         cv2 = self._cv2
         self.evaluations += 1
         base = self.blurry / self.model.integral(contrast).astype(np.float32)
@@ -176,15 +213,14 @@ class ContrastObjective:
             # where S = 0 (every pixel that never fired, and fired ones between their steps)
             # the latent is the base (exp(0) = 1): its log is computed once, not per instant
             log_base = np.log(base + np.float32(_EPS))
-            base_fired = base.reshape(-1)[self._pixels]
+            base_flat = base.reshape(-1)
         num = 0.0
-        four, fifth = self._four, self._fifth
         for k, d in enumerate(self.counts):
             if self._pixels is not None:
-                moved = self._moved[k]
+                pix = self._moved_pixels[k]
                 log_l = log_base.copy()
-                log_l.reshape(-1)[self._pixels[moved]] = np.log(
-                    base_fired[moved] * table[self.levels[k, moved]] + np.float32(_EPS))
+                log_l.reshape(-1)[pix] = np.log(
+                    base_flat[pix] * table[self._moved_levels[k]] + np.float32(_EPS))
             else:
                 if self._lookup:
                     lat = base * table[self.levels[k]]
@@ -194,13 +230,12 @@ class ContrastObjective:
             # blurred gradients are band-limited: every second pixel carries the information
             gx = cv2.sepFilter2D(log_l, -1, self._dgauss, self._gauss)[: self.hb:2, : self.wb:2]
             gy = cv2.sepFilter2D(log_l, -1, self._gauss, self._dgauss)[: self.hb:2, : self.wb:2]
-            np.multiply(gx, gx, out=four[..., 0])
-            np.multiply(gy, gy, out=four[..., 1])
-            np.multiply(gx, gy, out=four[..., 2])
-            np.multiply(gx, d, out=four[..., 3])
-            np.multiply(gy, d, out=fifth)
+            # contiguous planes, interleaved by cv2.merge: faster than strided products into
+            # the channels of one image, and the same numbers
+            gx, gy = np.ascontiguousarray(gx), np.ascontiguousarray(gy)
+            four = cv2.merge([gx * gx, gy * gy, gx * gy, gx * d])
             sxx, syy, sxy, sxd = np.moveaxis(self._resized(four), -1, 0)
-            syd = self._resized(fifth)
+            syd = self._resized(gy * d)
             # per block: least-squares fit d ≈ vx·gx + vy·gy; "explained" = fitted Σd²
             det = sxx * syy - sxy * sxy
             ok = det > 1e-9 * (sxx + syy) ** 2 + 1e-30
@@ -208,7 +243,7 @@ class ContrastObjective:
             explained = np.where(ok, (syy * sxd * sxd - 2 * sxy * sxd * syd + sxx * syd * syd)
                                  / det, 0.0)
             num += float(explained.sum())
-        return 1.0 - num / self.total
+        return num
 
     def _resized(self, img: np.ndarray) -> np.ndarray:
         # block means by area resampling (exact for whole blocks, much faster than reshape-sum),
@@ -251,18 +286,45 @@ def search_contrast(blurry: np.ndarray, prep: EdiEvents | EdiBins,
         raise InputError(f"contrast search bounds {bounds} must satisfy 0 < low < high")
     if isinstance(prep, EdiBins):
         count = int(np.abs(prep.bins).sum())
-        if count < _MIN_EVENTS:
-            return _fallback(f"too few events ({count}, at least {_MIN_EVENTS} needed)")
+        if count < MIN_EVENTS:
+            return _fallback(f"too few events ({count}, at least {MIN_EVENTS} needed)")
         obj = ContrastObjective.from_bins(prep, blurry)
     else:
-        if prep.count < _MIN_EVENTS:
-            return _fallback(f"too few events ({prep.count}, at least {_MIN_EVENTS} needed)")
+        if prep.count < MIN_EVENTS:
+            return _fallback(f"too few events ({prep.count}, at least {MIN_EVENTS} needed)")
         obj = ContrastObjective.from_events(prep, blurry)
     if obj.total <= 0:
         return _fallback("no events near the instants where the threshold is measured: are "
                          "all events at one instant? (check `time_unit`)")
     x, energy, at_bound = _minimise(lambda g: obj(float(np.exp(g))), np.log(lo), np.log(hi))
     return ContrastEstimate(float(np.exp(x)), True, energy, obj.evaluations, at_bound=at_bound)
+
+
+def search_contrast_pooled(objectives: list[ContrastObjective],
+                           bounds: tuple[float, float] = CONTRAST_BOUNDS
+                           ) -> tuple[float, float, bool, int]:
+    """One c for several exposures of one sensor: the search of :func:`search_contrast` on
+    their pooled energy, ``1 − Σ explained / Σ total`` (exposures weigh by their events' Σ D²,
+    so a busy frame counts more than a quiet one). One objective gives exactly
+    :func:`search_contrast`'s result.
+
+    Returns:
+        ``(c, energy at c, whether c is at an end of bounds, evaluations per objective)``.
+    """
+    lo, hi = bounds
+    if not 0 < lo < hi:
+        raise InputError(f"contrast search bounds {bounds} must satisfy 0 < low < high")
+    if not objectives:
+        raise InputError("no exposure to estimate the contrast threshold from")
+    total = sum(o.total for o in objectives)
+
+    def pooled(g: float) -> float:
+        c = float(np.exp(g))
+        return 1.0 - sum(o.explained(c) for o in objectives) / total
+
+    before = objectives[0].evaluations
+    x, energy, at_bound = _minimise(pooled, np.log(lo), np.log(hi))
+    return float(np.exp(x)), energy, at_bound, objectives[0].evaluations - before
 
 
 def _minimise(energy, low: float, high: float) -> tuple[float, float, bool]:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Annotated
 
@@ -51,8 +51,8 @@ NOpt = Annotated[int | None, typer.Option(
     "--n", min=1, max=16, help="Latent frames 2N+1 per exposure (default 3 → 7 frames; TRMD: "
     "the weights' N).")]
 Contrast = Annotated[str, typer.Option(
-    "--contrast", help="Event contrast threshold c (used by EDI and by TRMD), or 'auto' to "
-    "estimate it per frame.")]
+    "--contrast", help="Event contrast threshold c (used by EDI and by TRMD); 'auto': estimate "
+    "one for the recording from its busiest frames; 'frame': estimate it for every frame.")]
 TimeOffset = Annotated[str | None, typer.Option(
     "--time-offset", help="Shift the exposure window(s) relative to the events, e.g. -40ms "
     "(real DAVIS data often needs tens of ms).")]
@@ -75,20 +75,26 @@ Resume = Annotated[bool, typer.Option(
 
 
 def parse_contrast(text: str) -> float | None:
-    """``"auto"`` → None; a positive number → float."""
+    """``"auto"`` or ``"frame"`` → None (estimated); a positive number → float."""
     from ..errors import InputError
 
-    if text.strip().lower() == "auto":
+    if text.strip().lower() in ("auto", "frame"):
         return None
     try:
         value = float(text)
     except ValueError:
-        raise InputError(f"--contrast {text!r} is not a number or 'auto'",
+        raise InputError(f"--contrast {text!r} is not a number, 'auto' or 'frame'",
                          hint="e.g. --contrast 0.25, or --contrast auto") from None
     if not (value > 0 and value < 10):
         raise InputError(f"--contrast {text} must be a positive number (typically 0.1–0.5)",
                          hint="e.g. --contrast 0.25, or --contrast auto")
     return value
+
+
+def contrast_scope(text: str) -> str:
+    """What an estimated c is estimated over: ``--contrast frame`` → "frame", else
+    "recording"."""
+    return "frame" if text.strip().lower() == "frame" else "recording"
 
 
 def choose_method(method: str | None, weights: Path | None, default: str) -> str:
@@ -109,7 +115,8 @@ def method_config(method: str | None, weights: Path | None, n: int | None, contr
     from ..methods import DEFAULT_METHOD, MethodConfig
 
     config = MethodConfig(method=choose_method(method, weights, DEFAULT_METHOD), n=n,
-                          contrast=parse_contrast(contrast), hot_pixels=hot_pixels,
+                          contrast=parse_contrast(contrast),
+                          contrast_scope=contrast_scope(contrast), hot_pixels=hot_pixels,
                           weights=weights, device=device, threads=threads,
                           precision=precision, settle_contrast=settle_contrast)
     if bit_depth not in (8, 16):
@@ -160,7 +167,7 @@ def deblur(
     keep the finished frames in .OUT.trmd-partial beside it meanwhile, so the result is the
     same file for file as a run in one process."""
     from ..batch import frame_folder_name, ranks_from_env, recordings_in, run_meta, staged
-    from ..deblur import ContrastNotes, binned_note, deblur_frames
+    from ..deblur import ContrastNotes, binned_note, deblur_frames, settle_recording
     from ..errors import InputError
     from ..methods import make_method
     from ..overlap import ahead
@@ -203,7 +210,8 @@ def deblur(
                          progress=progress_bar)
         if run.main:
             meta = run.plan.items[0].meta
-            _report(run.summary, meta["method"], meta["n"], output, None, False)
+            _report(run.summary, meta["method"], meta["n"], output, None, False,
+                    [it.contrast for it in run.plan.items])
             if len(run.plan.items) > 1:
                 typer.echo(f"  from {len(run.plan.items)} recordings, one folder each")
         return
@@ -222,8 +230,8 @@ def deblur(
     with open_inputs(inputs, opts, exposure=exposure, offset_us=offset) as ins:
         for w in ins.warnings:
             warn(w)
-        est = make_method(config)
-        meta = run_meta(ins, est, config, offset, bit_depth)
+        est, rec = settle_recording(make_method(config), ins.source, config)
+        meta = run_meta(ins, est, config, offset, bit_depth, rec)
         said = [binned_note(ins.source, est)] if ins.binned else []
         summary: list[dict] = []
         notes = ContrastNotes()
@@ -260,7 +268,7 @@ def deblur(
 
     for line in [*said, *notes.lines()]:
         warn(line)
-    _report(summary, est.name, est.n, output, video, ins.single)
+    _report(summary, est.name, est.n, output, video, ins.single, [rec])
 
 
 @contextlib.contextmanager
@@ -276,15 +284,23 @@ def progress_bar(label: str, total: int, shown: bool = True) -> Iterator[Callabl
 
 
 def _report(summary: list[dict], method: str, n: int, output: Path, video: Path | None,
-            single: bool) -> None:
+            single: bool, recordings: Sequence = ()) -> None:
+    """``recordings``: each recording's one estimated c (a ``RecordingContrast``) or None."""
     import numpy as np
 
+    from ..deblur import recording_line
+
+    settled = [r for r in recordings if r is not None]
+    for rec in settled:
+        typer.echo(recording_line(rec))
     used = [s["contrast"] for s in summary if s["contrast"] is not None]
     auto = any(s["contrast_estimated"] for s in summary)
-    if used:
+    if used and len(settled) < len(recordings or [None]):
         kind = "estimated" if auto else "given"
         if len(used) == 1:
             typer.echo(f"contrast threshold c = {used[0]:.3f} ({kind})")
+        elif len(set(used)) == 1:
+            typer.echo(f"contrast threshold c = {used[0]:.3f} ({kind}) for every frame")
         else:
             typer.echo(f"contrast threshold c ({kind}, per frame): median {np.median(used):.3f}, "
                        f"range {min(used):.3f}–{max(used):.3f}; each frame's value is in its "

@@ -122,7 +122,7 @@ def hfr(
     .OUT.trmd-partial beside -o meanwhile; the output equals a run in one process file for
     file."""
     from ..batch import ranks_from_env, recordings_in, staged
-    from ..deblur import ContrastNotes, binned_note, deblur_frames
+    from ..deblur import ContrastNotes, binned_note, deblur_frames, settle_recording
     from ..errors import InputError
     from ..hfr import check_time_order, hfr_stream, timestamp_row
     from ..hfr_batch import OUTPUT_KINDS, hfr_meta, timestamps_header
@@ -190,7 +190,8 @@ def hfr(
             if done.capped:
                 warn(CAPPED_NOTE)
             _report(output, done.exposure, done.gap, done.contrasts, done.clipped,
-                    config.contrast, fps, meta["method"], meta["n"], len(run.plan.items))
+                    config.contrast, fps, meta["method"], meta["n"], len(run.plan.items),
+                    [it.contrast for it in run.plan.items])
         return
     check_output(output, overwrite, inputs=[*inputs, weights])
 
@@ -201,7 +202,7 @@ def hfr(
             config = replace(config, settle_contrast=False)
         else:
             check_time_order(ins.source.exposures(), inputs[0])
-        est = make_method(config)
+        est, rec = settle_recording(make_method(config), ins.source, config)
         notes: list[str] = [binned_note(ins.source, est, stream=True)] if ins.binned else []
         contrast_notes = ContrastNotes()
         contrasts: list[float] = []
@@ -238,22 +239,28 @@ def hfr(
                         count[fr.kind] += 1
                     write_text(tmp / "timestamps.txt", "\n".join(lines) + "\n")
                     meta = hfr_meta(ins, est, per_exposure=per_exposure, fps=fps,
-                                    fill_gaps=fill_gaps, offset_us=offset)
+                                    fill_gaps=fill_gaps, offset_us=offset, config=config,
+                                    recording=rec)
                     write_json(tmp / "meta.json", {**meta, "contrast": contrasts,
                                                    "frames": count})
 
     for note in [*contrast_notes.lines(), *notes]:
         warn(note)
     _report(output, count["exposure"], count["gap"], contrasts, clipped, config.contrast,
-            fps, est.name, est.n)
+            fps, est.name, est.n, 1, [rec])
 
 
 def _report(output: Path, exposure: int, gap: int, contrasts: Sequence[float],
             clipped: Sequence[float], given: float | None, fps: float, method: str,
-            n: int, recordings: int = 1) -> None:
+            n: int, recordings: int = 1, settled: Sequence = ()) -> None:
+    """``settled``: each recording's one estimated c (a ``RecordingContrast``) or None."""
+    from ..deblur import recording_line
     from ..write import clipped_message
 
-    if contrasts:
+    for rec in settled:
+        if rec is not None:
+            typer.echo(recording_line(rec))
+    if contrasts and not (settled and all(r is not None for r in settled)):
         import numpy as np
 
         kind = "given" if given is not None else "estimated"

@@ -13,7 +13,7 @@ from typing import Annotated
 import typer
 
 from .boundary import err, guarded, progress_enabled, warn
-from .deblur import Contrast, HotPixels, TimeOffset, parse_contrast
+from .deblur import Contrast, HotPixels, TimeOffset, contrast_scope, parse_contrast
 from .options import (
     Columns,
     Exposure,
@@ -91,6 +91,14 @@ def motion(
                              "recording)")
         for w in ins.warnings:
             warn(w)
+        if c is None and contrast_scope(contrast) == "recording":
+            # as `trmd deblur --method motion` settles it: one c for the recording
+            from ..deblur import recording_contrast, recording_line
+
+            rec = recording_contrast(ins.source, hot_pixels=hot_pixels)
+            if rec is not None:
+                c = rec.contrast
+                typer.echo(recording_line(rec))
         written: list[str] = []
         with atomic_dir(output) as tmp, Progress(
                 console=err, disable=not progress_enabled() or ins.single,
