@@ -270,8 +270,7 @@ def _from_bins(item: BinnedWindow, method: Method, per_exposure: int | None) -> 
                               "frames at the instants k/2N")
     blurry = check_blurry(frame.image, bins.shape[2], bins.shape[1], frame.name)
     blurry, notes = _in_range(blurry, frame)
-    count = int(np.abs(bins.astype(np.int64, copy=False)).sum()) if bins.dtype.kind in "iu" \
-        else int(np.abs(bins).sum())
+    count = _count(item)
     if count == 0:
         fractions = np.linspace(0.0, 1.0, k)
         frames = np.repeat(blurry[None], k, axis=0)
