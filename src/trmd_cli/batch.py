@@ -58,6 +58,7 @@ __all__ = [
     "frame_folder_name", "worker_threads", "ranks_from_env", "RECORDING_SUFFIXES", "Unit",
     "open_item", "swap_in", "run_pool", "run_plan", "todo", "agreed", "joined",
     "recording_folders", "plan_items", "Tally", "staged", "run_staged", "Outcome",
+    "from_rank0",
 ]
 
 #: one piece of a run's work: (recording, frame) for deblur; plans of their own may add a tag
@@ -694,6 +695,17 @@ def joined(ranks: Ranks):
         dist.destroy_process_group()
 
 
+def from_rank0(ranks: Ranks, value):
+    """Rank 0's ``value`` on every rank (``value`` itself without torchrun)."""
+    if not ranks.enabled:
+        return value
+    import torch.distributed as dist
+
+    box = [value]
+    dist.broadcast_object_list(box, src=0)
+    return box[0]
+
+
 def agreed(ranks: Ranks, step: Callable[[], object]):
     """Run ``step`` on every rank and wait for all: when it failed on any, fail on every one
     (a rank left waiting for a failed one would hang). Returns ``step``'s result."""
@@ -894,7 +906,8 @@ def run_staged(make: Callable[..., Plan], inputs: Sequence[Path],
 
     The ranks do each step together (:func:`agreed`: when it fails on one, every one stops):
     check the output, make the plan, prepare the stage, every phase, finish. Only rank 0
-    checks, prepares, finishes and warns of what the inputs say.
+    checks, makes the plan (the others get it from it), prepares, finishes and warns of what
+    the inputs say.
 
     Args:
         make: the plan's maker, ``(groups, folders, settings, warn) -> Plan``
@@ -952,7 +965,10 @@ def run_staged(make: Callable[..., Plan], inputs: Sequence[Path],
 
     with joined(ranks):
         agreed(ranks, check)
-        plan = agreed(ranks, lambda: make(groups, folders, settings, warn if main else _quiet))
+        # rank 0 makes the plan and hands it to the others: what it settles once per recording
+        # (the contrast threshold) is then the same number on every rank, whatever machine
+        plan = from_rank0(ranks, agreed(ranks, lambda: make(groups, folders, settings, warn)
+                                        if main else None))
         agreed(ranks, lambda: prepare(plan))
         try:
             work = todo(plan, stage, ranks)
