@@ -198,3 +198,9 @@ def test_events_on_one_frame_only_still_settle_from_it(seq):
     source = windows(seq, lambda k, ev: ev if k == 3 else EventStream.empty(W, H))
     rec = recording_contrast(source)
     assert rec is not None and rec.frames == ("f3",)
+
+
+def test_one_frame_settles_its_own(seq):
+    one = Recording(windows(seq).items[:1])
+    method = EdiMethod()
+    assert settle_recording(method, one, MethodConfig(method="edi")) == (method, None)

@@ -225,9 +225,10 @@ def settle_recording(method: Method, source: Sequence, config: MethodConfig
     """``method`` with one estimated c for the whole recording ``source`` when ``config``
     asks for it (c not given, ``contrast_scope="recording"``) and the method uses c; else
     ``method`` unchanged. Also gives the estimate (None: not made, or no frame held enough
-    events — every frame then settles its own c)."""
+    events — every frame then settles its own c; a source of one frame settles its own)."""
     if config.contrast is not None or config.contrast_scope != "recording" \
-            or not method.needs.contrast:
+            or not method.needs.contrast or len(source) < 2:
+        # (one frame: its own estimate is the recording's)
         return method, None
     rec = recording_contrast(source, hot_pixels=config.hot_pixels)
     return (method, None) if rec is None else (method.for_recording(rec), rec)
