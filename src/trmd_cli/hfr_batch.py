@@ -159,7 +159,7 @@ def timestamps_header(binned: bool) -> str:
 
 
 def hfr_meta(ins, est, *, per_exposure: int | None, fps: float, fill_gaps: bool,
-             offset_us: int, config: MethodConfig | None = None, recording=None) -> dict:
+             offset_us: int, config: MethodConfig, recording=None) -> dict:
     """meta.json of a frames output, with ``contrast`` and ``frames`` still to fill in (their
     places kept).
 
@@ -167,7 +167,7 @@ def hfr_meta(ins, est, *, per_exposure: int | None, fps: float, fill_gaps: bool,
         ins: the :class:`~trmd_cli.read.inputs.Inputs`. est: the method run on them.
         per_exposure: frames per exposure (None: 2N+1). fps: playback rate. fill_gaps: asked
             for. offset_us: exposure shift, µs. config, recording: the method's settings and
-            the recording's one estimated c, for where c came from (left out without config).
+            the recording's one estimated c (None: not settled), for where c came from.
     """
     from . import __version__
     from .batch import binned_meta, contrast_meta
@@ -176,9 +176,8 @@ def hfr_meta(ins, est, *, per_exposure: int | None, fps: float, fill_gaps: bool,
         "tool": f"trmd {__version__}", "method": est.name, "n": est.n,
         "weights_hash": est.weights_hash, "inputs": ins.paths, "precision": est.precision,
         "per_exposure": per_exposure or 2 * est.n + 1, "fps": fps, "fill_gaps": fill_gaps,
-        "time_offset_us": offset_us, "contrast": None, "frames": None}
-    if config is not None:
-        meta.update(contrast_meta(config, recording))
+        "time_offset_us": offset_us, "contrast": None, "frames": None,
+        **contrast_meta(config, recording)}
     if ins.binned:
         del meta["time_offset_us"]
         meta.update(fill_gaps=False, **binned_meta(ins.source))

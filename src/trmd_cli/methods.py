@@ -245,6 +245,15 @@ def _check_bins(bins: np.ndarray) -> np.ndarray:
     return bins
 
 
+def _with_edi(method, edi: EdiMethod):
+    """A shallow copy of ``method`` whose c is settled by ``edi`` (loaded parts shared)."""
+    import copy
+
+    out = copy.copy(method)
+    out._edi = edi
+    return out
+
+
 def window_model(events: EventStream | np.ndarray, exposure: Exposure | None,
                  hot_pixels: bool) -> tuple[EdiEvents | EdiBins, np.ndarray | None,
                                             PixelEvents | None]:
@@ -364,11 +373,7 @@ class TrmdMethod:
 
     def for_recording(self, recording: RecordingContrast):
         """This method (the same loaded parts) with the recording's c for every frame."""
-        import copy
-
-        out = copy.copy(self)
-        out._edi = self._edi.for_recording(recording)
-        return out
+        return _with_edi(self, self._edi.for_recording(recording))
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         from .voxel import scer_levels, scer_voxels
@@ -463,11 +468,7 @@ class MotionMethod:
 
     def for_recording(self, recording: RecordingContrast):
         """This method (the same loaded parts) with the recording's c for every frame."""
-        import copy
-
-        out = copy.copy(self)
-        out._edi = self._edi.for_recording(recording)
-        return out
+        return _with_edi(self, self._edi.for_recording(recording))
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         from .deconv import motion_deblur

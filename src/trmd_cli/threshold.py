@@ -50,7 +50,6 @@ DEFAULT_CONTRAST = 0.25
 CONTRAST_BOUNDS = (0.05, 1.0)
 #: instants (fractions of the exposure) at which the consistency is measured
 INSTANTS = np.array([0.2, 0.35, 0.5, 0.65, 0.8])
-_INSTANTS = INSTANTS
 #: half-width δ of the event window around each instant, fraction of the exposure
 _DELTA = 0.03
 #: block size (px) over which the image motion is taken as constant
@@ -177,7 +176,7 @@ class ContrastObjective:
                     instants: np.ndarray | None = None) -> ContrastObjective:
         """``instants``: fractions of the window to measure at (None: the usual five)."""
         h, w = prep.height, prep.width
-        instants = _INSTANTS if instants is None else np.asarray(instants, np.float64)
+        instants = INSTANTS if instants is None else np.asarray(instants, np.float64)
         counts = []
         for f in instants:
             sel = np.abs(prep.time - f) <= _DELTA
@@ -192,7 +191,7 @@ class ContrastObjective:
         fractions of the exposure); counts = those bins."""
         m = model.bins.shape[0]
         f0, f1 = model.exposure
-        instants = _INSTANTS if instants is None else np.asarray(instants, np.float64)
+        instants = INSTANTS if instants is None else np.asarray(instants, np.float64)
         wanted = f0 + instants * (f1 - f0)
         idx = sorted({min(max(int(np.floor(f * m)), 0), m - 1) for f in wanted})
         instants = (np.array(idx) + 0.5) / m

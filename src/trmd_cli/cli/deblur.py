@@ -284,7 +284,7 @@ def progress_bar(label: str, total: int, shown: bool = True) -> Iterator[Callabl
 
 
 def _report(summary: list[dict], method: str, n: int, output: Path, video: Path | None,
-            single: bool, recordings: Sequence = ()) -> None:
+            single: bool, recordings: Sequence) -> None:
     """``recordings``: each recording's one estimated c (a ``RecordingContrast``) or None."""
     import numpy as np
 
@@ -295,7 +295,7 @@ def _report(summary: list[dict], method: str, n: int, output: Path, video: Path 
         typer.echo(recording_line(rec))
     used = [s["contrast"] for s in summary if s["contrast"] is not None]
     auto = any(s["contrast_estimated"] for s in summary)
-    if used and len(settled) < len(recordings or [None]):
+    if used and len(settled) < len(recordings):
         kind = "estimated" if auto else "given"
         if len(used) == 1:
             typer.echo(f"contrast threshold c = {used[0]:.3f} ({kind})")

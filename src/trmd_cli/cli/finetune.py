@@ -15,6 +15,7 @@ from typing import Annotated, Optional
 import typer
 
 from .boundary import err, guarded, progress_enabled, warn
+from .deblur import HotPixels, TimeOffset, parse_contrast
 from .options import (
     Columns,
     Exposure,
@@ -89,12 +90,9 @@ def finetune(
         "--parts", help="Train only these parts of the network, comma-separated (e.g. "
         "refine,head,up4,up3; `trmd info` on weights does not list them: an unknown name is "
         "refused with the list). Default: all.")] = None,
-    hot_pixels: Annotated[bool, typer.Option(
-        "--hot-pixels/--keep-hot-pixels", help="Ignore the events of hot pixels.")] = True,
+    hot_pixels: HotPixels = True,
     exposure: Exposure = None,
-    time_offset: Annotated[str | None, typer.Option(
-        "--time-offset", help="Shift the exposure window(s) relative to the events, e.g. "
-        "-40ms.")] = None,
+    time_offset: TimeOffset = None,
     threads: Threads = None,
     time_unit: TimeUnit = None,
     sensor: Sensor = None,
@@ -124,7 +122,6 @@ def finetune(
     from ..train.finetune import finetune as run
     from ..viz import strip
     from ..write import check_output, write_image
-    from .deblur import parse_contrast
 
     if output.suffix.lower() != ".safetensors":
         raise InputError("-o must name a .safetensors file", path=output,
