@@ -244,7 +244,7 @@ def recording_line(rec: RecordingContrast) -> str:
     if rec.at_bound:
         lo, hi = CONTRAST_BOUNDS
         line += (f" (at the edge of the search range {lo:g}–{hi:g}: the sensor's threshold "
-                 "may lie beyond it; set --contrast if you know it)")
+                 "may lie beyond it; set `contrast` if you know it)")
     return line
 
 

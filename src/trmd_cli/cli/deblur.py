@@ -21,7 +21,7 @@ from typing import Annotated
 
 import typer
 
-from .boundary import err, guarded, progress_enabled, warn
+from .boundary import as_flags, err, guarded, progress_enabled, warn
 from .options import (
     Columns,
     Device,
@@ -292,7 +292,7 @@ def _report(summary: list[dict], method: str, n: int, output: Path, video: Path 
 
     settled = [r for r in recordings if r is not None]
     for rec in settled:
-        typer.echo(recording_line(rec))
+        typer.echo(as_flags(recording_line(rec)))
     used = [s["contrast"] for s in summary if s["contrast"] is not None]
     auto = any(s["contrast_estimated"] for s in summary)
     if used and len(settled) < len(recordings):

@@ -28,7 +28,7 @@ from typing import Annotated
 
 import typer
 
-from .boundary import guarded, warn
+from .boundary import as_flags, guarded, warn
 from .deblur import (
     BitDepth,
     Contrast,
@@ -259,7 +259,7 @@ def _report(output: Path, exposure: int, gap: int, contrasts: Sequence[float],
 
     for rec in settled:
         if rec is not None:
-            typer.echo(recording_line(rec))
+            typer.echo(as_flags(recording_line(rec)))
     if contrasts and not (settled and all(r is not None for r in settled)):
         import numpy as np
 

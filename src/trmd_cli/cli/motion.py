@@ -12,7 +12,7 @@ from typing import Annotated
 
 import typer
 
-from .boundary import err, guarded, progress_enabled, warn
+from .boundary import as_flags, err, guarded, progress_enabled, warn
 from .deblur import Contrast, HotPixels, TimeOffset, contrast_scope, parse_contrast
 from .options import (
     Columns,
@@ -98,7 +98,7 @@ def motion(
             rec = recording_contrast(ins.source, hot_pixels=hot_pixels)
             if rec is not None:
                 c = rec.contrast
-                typer.echo(recording_line(rec))
+                typer.echo(as_flags(recording_line(rec)))
         written: list[str] = []
         with atomic_dir(output) as tmp, Progress(
                 console=err, disable=not progress_enabled() or ins.single,
