@@ -105,8 +105,8 @@ def motion_summary(views: MotionViews) -> dict[str, Any]:
         "exposure_duration_us": int(e.duration_us),
         "time": "u: fraction of the exposure (0 = start, 1 = end); the model is centred on "
                 "mid-exposure, tau = u - 0.5",
-        "model": "p(tau) = c + exp(zoom*tau) R(rotation*tau) (p0 - c) + velocity*tau "
-                 "+ acceleration*tau^2/2",
+        "model": "p(tau) = c + exp(zoom*tau) R(rotation*tau) h(p0 - c) + velocity*tau "
+                 "+ acceleration*tau^2/2, h(r) = r / (1 + tau * perspective . r)",
         "velocity_px_per_exposure": [_r(vx), _r(vy)],
         "velocity_px_per_s": [_r(vx * per_s, 2), _r(vy * per_s, 2)],
         "direction_deg": _r(math.degrees(math.atan2(vy, vx)) % 360.0, 2),
@@ -115,6 +115,8 @@ def motion_summary(views: MotionViews) -> dict[str, Any]:
         "rotation_rad_per_exposure": _r(m.rotation, 6),
         "rotation_deg_per_exposure": _r(math.degrees(m.rotation), 4),
         "zoom_log_scale_per_exposure": _r(m.zoom, 6),
+        "perspective_per_px_per_exposure": [float(f"{m.perspective[0]:.4g}"),
+                                            float(f"{m.perspective[1]:.4g}")],
         "centre_px": [_r(m.centre[0], 2), _r(m.centre[1], 2)],
         "max_displacement_from_middle_px": _r(m.max_displacement_px(w, h), 3),
         "start_to_end_px": {"mean": _r(float(disp.mean()), 3),
