@@ -141,8 +141,8 @@ def event_gain(motion, events, exposure, hot_mask: np.ndarray | None = None
                ) -> tuple[float, int]:
     """How much ``motion`` sharpens the exposure's events: the variance of their image carried
     to the middle by it, over that of the events as recorded (both voted bilinearly and
-    smoothed by a σ = 1 px Gaussian, as contrast maximisation scores a motion at full
-    resolution). Returns (gain, events used); (0, n) with fewer than 2 events.
+    smoothed by a σ = 1 px Gaussian, as the confidence of an estimate is read). Returns (gain,
+    events used); (0, n) with fewer than 2 events.
 
     Args:
         motion: anything with ``to_middle(fractions, x, y)`` (pixels, exposure fractions).
