@@ -157,8 +157,8 @@ class _Level:
     The objective is the gain ``var(g ∗ IWE(q)) / var(g ∗ IWE(0))`` with ``q`` = (vx, vy, ax,
     ay, ω·R, ζ·R, πx·R², πy·R²) (pixels per exposure, per exposure², and the rotation, zoom
     and perspective scaled by the radius ``R`` so that every parameter moves a far pixel by
-    comparable amounts). The
-    warp is :meth:`GlobalMotion.to_middle` written out on per-level constants."""
+    comparable amounts). The warp is :meth:`GlobalMotion.to_middle` written out on per-level
+    constants."""
 
     def __init__(self, x, y, u, width, height, scale, centre, radius,
                  sigma: float | None = None):
