@@ -1,13 +1,15 @@
-"""Time and quality of `--method motion` on 346×260 simulated frames (fixed seed).
+"""Time and quality of `--method motion` and `--method fused` on 346×260 simulated frames
+(fixed seed).
 
     python bench/bench_motion.py [FRAMES] [REPEATS]
 
 Per frame: motion estimation (contrast maximisation), deconvolution (from and anchored to
 EDI's middle frame, as the method runs it), the whole method (EDI's contrast and frames, motion,
-deconvolution, guard); each the fastest of REPEATS runs (default 3; the machine is shared).
-PSNR of the middle frame against the ground truth for the blurry frame, EDI at the true c, and
-motion at the true c, and the motion estimate's mean end-point error against the simulator's
-camera path (pixels).
+deconvolution, guard); the fused method (TRMD, the motion method and the fusion network, with
+the shipped weights; skipped when none ship); each the fastest of REPEATS runs (default 3; the
+machine is shared). PSNR of the middle frame against the ground truth for the blurry frame, EDI
+at the true c, motion and fused at the true c, and the motion estimate's mean end-point error
+against the simulator's camera path (pixels).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import numpy as np
 
 from trmd_cli.deconv import deconvolve
 from trmd_cli.edi import hot_pixel_mask
-from trmd_cli.methods import EdiMethod, MotionMethod
+from trmd_cli.methods import EdiMethod, FusedMethod, MethodConfig, MotionMethod, unavailable
 from trmd_cli.metrics import psnr
 from trmd_cli.motion import SampledMotion, estimate_motion
 from trmd_cli.read.frames import read_image
@@ -45,6 +47,7 @@ def main(frames: int = 3, repeats: int = 3) -> None:
     motion = MotionRanges(translation_px=20, rotation_deg=1, scale=0.02, perspective=0,
                           curvature=0.3)
     rows = []
+    with_fused = unavailable(MethodConfig("fused")) is None
     for seed in range(frames):
         s = make_sample(img, rng=np.random.default_rng(100 + seed), motion=motion,
                         read_noise=0.005)
@@ -60,15 +63,21 @@ def main(frames: int = 3, repeats: int = 3) -> None:
         h, w = s.blurry.shape[:2]
         epe = m.end_point_error_px(SampledMotion(s.motion, centre=m.centre), w, h)
         gt = s.sharp[3]
+        p_fu, t_fu = np.nan, np.nan
+        if with_fused:
+            fu, t_fu = _fastest(partial(FusedMethod(3, contrast=s.contrast), s.blurry,
+                                        s.events, s.exposure), repeats)
+            p_fu = psnr(np.clip(fu.frames[3], 0, 1), gt)
         rows.append((psnr(s.blurry, gt), psnr(edi.frames[3], gt), psnr(mot.frames[3], gt), epe,
-                     t_cmax, t_dec, t_all))
+                     t_cmax, t_dec, t_all, p_fu, t_fu))
         r = rows[-1]
-        print(f"seed {100 + seed}: blurry {r[0]:.2f}  EDI {r[1]:.2f}  motion {r[2]:.2f} dB  "
-              f"EPE {r[3]:.3f} px   cmax {r[4]:.2f} s  deconv {r[5]:.2f} s  method total "
-              f"{r[6]:.2f} s", flush=True)
+        print(f"seed {100 + seed}: blurry {r[0]:.2f}  EDI {r[1]:.2f}  motion {r[2]:.2f}  fused "
+              f"{r[7]:.2f} dB  EPE {r[3]:.3f} px   cmax {r[4]:.2f} s  deconv {r[5]:.2f} s  "
+              f"motion total {r[6]:.2f} s  fused total {r[8]:.2f} s", flush=True)
     a = np.mean(rows, axis=0)
-    print(f"mean: blurry {a[0]:.2f}  EDI {a[1]:.2f}  motion {a[2]:.2f} dB  EPE {a[3]:.3f} px   "
-          f"cmax {a[4]:.2f} s  deconv {a[5]:.2f} s  total {a[6]:.2f} s per 346×260 frame")
+    print(f"mean: blurry {a[0]:.2f}  EDI {a[1]:.2f}  motion {a[2]:.2f}  fused {a[7]:.2f} dB  "
+          f"EPE {a[3]:.3f} px   cmax {a[4]:.2f} s  deconv {a[5]:.2f} s  motion {a[6]:.2f} s  "
+          f"fused {a[8]:.2f} s per 346×260 frame")
 
 
 if __name__ == "__main__":

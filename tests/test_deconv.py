@@ -8,6 +8,8 @@ import pytest
 import torch
 
 from trmd_cli.deconv import (
+    ANCHOR_CONTRAST,
+    NOISE_SCALE,
     BlurOperator,
     DeconvConfig,
     data_weights,
@@ -127,7 +129,9 @@ def test_anchor_fills_what_the_blur_erased():
     noisy = noisy.astype(np.float32)
     inner = (slice(4, -4), slice(20, -20))
     alone = deconvolve(blurry, m, start=blurry).frames([0.5])[0]
-    anchored = deconvolve(blurry, m, start=blurry, anchor=noisy).frames([0.5])[0]
+    # α set for this anchor's noise, not the default's DAVIS-like EDI error
+    anchored = deconvolve(blurry, m, DeconvConfig(anchor=0.01), start=blurry,
+                          anchor=noisy).frames([0.5])[0]
     assert psnr(alone[inner], sharp[inner]) < 20
     assert psnr(anchored[inner], sharp[inner]) > psnr(noisy[inner], sharp[inner]) + 2
 
@@ -144,11 +148,13 @@ def test_guard_trusts_an_exact_motion_and_drops_a_wrong_one():
     blurry = op.apply(torch.from_numpy(big)[None])[0].numpy()
     blurry = (blurry + 0.005 * rng.standard_normal((H, W))).astype(np.float32)
     edi = (sharp + 0.03 * rng.standard_normal(sharp.shape)).astype(np.float32)
-    d = deconvolve(blurry, MOTION, start=edi, anchor=edi)
+    # α near B's noise variance over the anchor's, (0.005 / 0.03)²
+    cfg = DeconvConfig(anchor=0.01)
+    d = deconvolve(blurry, MOTION, cfg, start=edi, anchor=edi)
     assert guard_weights(d.data_weight, 2.0).mean() > 0.95
     assert psnr(d.frames([0.5])[0], sharp) > psnr(edi, sharp) + 3
     turned = GlobalMotion((4.0, 10.0), centre=MOTION.centre)
-    d = deconvolve(blurry, turned, start=edi, anchor=edi)
+    d = deconvolve(blurry, turned, cfg, start=edi, anchor=edi)
     assert guard_weights(d.data_weight, 2.0).mean() < 0.2
     # no confidence in the motion: nothing is kept
     assert guard_weights(np.ones((H, W), np.float32), 1.05).max() == 0.0
@@ -241,3 +247,21 @@ def test_too_few_events_give_edi_with_a_note():
 def test_binned_data_is_refused():
     with pytest.raises(InputError, match="event times"):
         MotionMethod().from_bins(np.zeros((4, 5), np.float32), np.zeros((6, 4, 5)))
+
+
+def test_anchor_weight_follows_the_threshold():
+    """EDI's error is one event step: α goes as 1/c², equal to the given α at c = 0.3."""
+    cfg = DeconvConfig(anchor=0.003)
+    assert cfg.for_contrast(ANCHOR_CONTRAST).anchor == pytest.approx(0.003)
+    assert cfg.for_contrast(0.6).anchor == pytest.approx(0.003 / 4)
+    assert cfg.for_contrast(None) is cfg
+
+
+def test_prior_weight_follows_the_noise():
+    """λ goes with B's noise σ, equal to the given λ at σ = noise_ref, within NOISE_SCALE."""
+    cfg = DeconvConfig(penalty=2e-4, noise_ref=0.005)
+    assert cfg.for_noise(0.005).penalty == pytest.approx(2e-4)
+    assert cfg.for_noise(0.0025).penalty == pytest.approx(1e-4)
+    assert cfg.for_noise(0.0).penalty == pytest.approx(2e-4 * NOISE_SCALE[0])
+    assert cfg.for_noise(1.0).penalty == pytest.approx(2e-4 * NOISE_SCALE[1])
+    assert DeconvConfig(noise_ref=None).for_noise(0.01).penalty == DeconvConfig().penalty

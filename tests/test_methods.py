@@ -108,7 +108,8 @@ def test_edi_on_bins_is_edi_from_bins_with_the_estimated_threshold(sample):
 def test_declared_needs():
     assert EdiMethod.needs.contrast and not EdiMethod.needs.weights
     assert TrmdMethod.needs.weights
-    assert METHODS == tuple(REGISTRY) == ("edi", "trmd", "motion")
+    assert METHODS == tuple(REGISTRY) == ("edi", "trmd", "motion", "fused")
+    assert REGISTRY["fused"].needs.contrast and REGISTRY["fused"].needs.weights
     assert isinstance(make_method(MethodConfig("edi", n=2, contrast=0.2)), EdiMethod)
 
 

@@ -45,6 +45,7 @@ __all__ = [
     "EdiMethod",
     "TrmdMethod",
     "MotionMethod",
+    "FusedMethod",
     "REGISTRY",
     "make_method",
     "unavailable",
@@ -52,7 +53,7 @@ __all__ = [
 ]
 
 #: the method used when none is asked for
-DEFAULT_METHOD = "trmd"
+DEFAULT_METHOD = "fused"
 #: N used by EDI when none is given (2N+1 = 7 frames)
 DEFAULT_N = 3
 #: what an estimated contrast threshold is estimated over (see ``MethodConfig``)
@@ -376,8 +377,6 @@ class TrmdMethod:
         return _with_edi(self, self._edi.for_recording(recording))
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
-        from .voxel import scer_levels, scer_voxels
-
         b = check_blurry(blurry, events.width, events.height)
         grid = exposure.instants_us(self.n)
         inst = grid if instants_us is None else np.asarray(instants_us, np.float64)
@@ -387,12 +386,7 @@ class TrmdMethod:
         settle = self.needs.contrast or not exact.all()
         prep = self.prepare(b, events, exposure) if settle else None
         c = None if prep is None else prep.contrast
-        # one per-pixel sort of the window for c, the voxels and their timing levels
-        window = prep.window if prep is not None and prep.window is not None else \
-            PixelEvents.build(events, exposure)
-        levels = scer_levels(events, exposure, self.n, window=window) if self.needs.timing \
-            else None
-        frames = self.model(b, scer_voxels(events, exposure, self.n, window=window), c, levels)
+        frames = self.grid_frames(b, events, exposure, prep)
         if prep is None:
             return Estimate(frames[nearest], inst, None)
         if exact.all():
@@ -404,6 +398,22 @@ class TrmdMethod:
             out[sel] = propagate(frames[k], events, grid[k], inst[sel], c, prep.hot)
         return Estimate(out, inst, c, prep.estimated, prep.reliable, prep.hot_pixels,
                         prep.note)
+
+    def grid_frames(self, blurry: np.ndarray, events: EventStream, exposure: Exposure,
+                    prep: Prepared | None) -> np.ndarray:
+        """The network's 2N+1 frames (K, H, W[, 3]) of a checked blurry frame, with the
+        exposure already settled by :meth:`prepare` (None when the weights take no c: the
+        window is then sorted here)."""
+        from .voxel import scer_levels, scer_voxels
+
+        c = None if prep is None else prep.contrast
+        # one per-pixel sort of the window for c, the voxels and their timing levels
+        window = prep.window if prep is not None and prep.window is not None else \
+            PixelEvents.build(events, exposure)
+        levels = scer_levels(events, exposure, self.n, window=window) if self.needs.timing \
+            else None
+        return self.model(blurry, scer_voxels(events, exposure, self.n, window=window), c,
+                          levels)
 
     def from_bins(self, blurry, bins, fractions=None) -> Estimate:
         """The network on SCER voxels made from the bins; its timing inputs, when it takes
@@ -483,7 +493,8 @@ class MotionMethod:
         edi, mid = lat[:-1], lat[-1]
         given = None if self.motion is None else \
             self.motion.with_evidence(events, exposure, prep.hot)
-        res = motion_deblur(b, events, exposure, fr, edi, mid, prep.hot, motion=given)
+        res = motion_deblur(b, events, exposure, fr, edi, mid, prep.hot, motion=given,
+                           contrast=prep.contrast)
         return Estimate(res.frames, inst, prep.contrast, prep.estimated, prep.reliable,
                         prep.hot_pixels, prep.note,
                         tuple(f"{self.note_prefix}{note}" for note in res.notes))
@@ -493,10 +504,110 @@ class MotionMethod:
                          "events have none", hint="use `method='edi'` or `method='trmd'`")
 
 
+class FusedMethod:
+    """TRMD and the motion method fused: per latent instant a small trained network
+    (:mod:`trmd_cli.models.fusion`) corrects the motion method's frame from TRMD's, EDI's, B,
+    the motion guard's weight and the events (:mod:`trmd_cli.fusion`). One c for all three,
+    settled as EDI settles it; instants other than the 2N+1 are propagated from the nearest
+    fused frame by event integration, as TRMD does."""
+
+    name = "fused"
+    needs = MethodNeeds(contrast=True, weights=True)
+    summary = ("TRMD and the motion method fused by a small trained network; contrast "
+               "estimated per frame as EDI's")
+
+    def __init__(self, n: int | None = None, weights: str | Path | None = None,
+                 device: str = "auto", threads: int | None = None,
+                 contrast: float | None = None, hot_pixels: bool = True,
+                 precision: str = "auto", fusion_weights: str | Path | None = None) -> None:
+        import hashlib
+
+        from .models.fusion import default_fusion_path, load_fusion
+
+        self._trmd = TrmdMethod(n, weights, device, threads, contrast, hot_pixels, precision,
+                                settle_contrast=True)
+        self.n = self._trmd.n
+        self.precision = self._trmd.precision
+        fpath = default_fusion_path() if fusion_weights is None else Path(fusion_weights)
+        #: the loaded fusion network (on the CPU: it is small) and its metadata
+        self.fusion, self.fusion_meta = load_fusion(fpath)
+        fhash = hashlib.sha256(fpath.read_bytes()).hexdigest()[:12]
+        self.weights_hash = f"{self._trmd.weights_hash}+{fhash}"
+
+    @classmethod
+    def from_config(cls, config: MethodConfig) -> FusedMethod:
+        return cls(config.n, config.weights, config.device, config.threads, config.contrast,
+                   config.hot_pixels, config.precision)
+
+    def prepare(self, blurry, events, exposure=None) -> Prepared:
+        """c settled as EDI settles it (see :meth:`EdiMethod.prepare`)."""
+        return self._trmd.prepare(blurry, events, exposure)
+
+    def for_recording(self, recording: RecordingContrast):
+        """This method (the same loaded parts) with the recording's c for every frame."""
+        import copy
+
+        out = copy.copy(self)
+        out._trmd = self._trmd.for_recording(recording)
+        return out
+
+    def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
+        import torch
+
+        from .fusion import fusion_inputs
+        from .models.fusion import MAX_CONTRAST, fusion_planes
+
+        b = check_blurry(blurry, events.width, events.height)
+        grid = exposure.instants_us(self.n)
+        inst = grid if instants_us is None else np.asarray(instants_us, np.float64)
+        nearest = np.abs(inst[:, None] - grid[None]).argmin(axis=1)
+        exact = np.isclose(inst, grid[nearest], atol=0.5)
+        ins = fusion_inputs(b, events, exposure, self._trmd, self.n)
+        prep = ins.prepared
+        # the motion method's own fallbacks ("used EDI") are not this method's: where the
+        # motion is not used the network leans on TRMD, so they are not passed on
+        notes: tuple[str, ...] = ()
+        if prep.contrast > MAX_CONTRAST:
+            frames = ins.motion
+            notes = (*notes, f"c = {prep.contrast:.2f} is beyond the fusion network's sensors "
+                     f"(c ≤ {MAX_CONTRAST}): the motion method's frames")
+        else:
+            planes = fusion_planes(ins.motion, ins.trmd, ins.edi, ins.blurry, ins.weight,
+                                   ins.events, self.n)
+            with torch.inference_mode():
+                out = self.fusion(planes)[:, 0].numpy()
+            k = ins.motion.shape[0]
+            frames = out.reshape(k, *ins.motion.shape[3:], *out.shape[1:])
+            if ins.motion.ndim == 4:  # (K, C, H, W) → (K, H, W, C)
+                frames = frames.transpose(0, 2, 3, 1)
+        frames = np.ascontiguousarray(frames, np.float32)
+        if not exact.all():
+            res = np.empty((len(inst), *frames.shape[1:]), np.float32)
+            for j in np.unique(nearest):
+                sel = nearest == j
+                res[sel] = propagate(frames[j], events, grid[j], inst[sel], prep.contrast,
+                                     prep.hot)
+            frames = res
+        else:
+            frames = frames[nearest]
+        return Estimate(frames, inst, prep.contrast, prep.estimated, prep.reliable,
+                        prep.hot_pixels, prep.note, notes)
+
+    def from_bins(self, blurry, bins, fractions=None) -> Estimate:
+        """TRMD's frames (:meth:`TrmdMethod.from_bins`), with a note: binned events have no
+        event times to estimate a motion from."""
+        from dataclasses import replace
+
+        est = self._trmd.from_bins(blurry, bins, fractions)
+        return replace(est, notes=(*est.notes, "binned events have no event times to estimate "
+                                   "the motion from: TRMD's frames"))
+
+
 #: every deblurring method's class by name: the one place a method is added. A class has
 #: ``name``, ``needs`` (what is known before it is built), ``summary`` (one line for reports)
 #: and ``from_config(config)``.
-REGISTRY: dict[str, type] = {cls.name: cls for cls in (EdiMethod, TrmdMethod, MotionMethod)}
+REGISTRY: dict[str, type] = {cls.name: cls for cls in (EdiMethod, TrmdMethod, MotionMethod,
+                                                      FusedMethod)}
 #: every deblurring method, in the order messages list them
 METHODS = tuple(REGISTRY)
 
@@ -509,6 +620,12 @@ def make_method(config: MethodConfig) -> Method:
 def unavailable(config: MethodConfig) -> str | None:
     """Why ``config``'s method cannot run in this installation, or None: it needs weights,
     none are given, and none ship."""
+    if config.method == FusedMethod.name:
+        from .models.fusion import default_fusion_path
+
+        if not default_fusion_path().is_file():
+            return ("this installation ships no fusion weights (weights_recipe/train_fusion.py "
+                    "makes them)")
     if not REGISTRY[config.method].needs.weights or config.weights is not None:
         return None
     from .models.weights import default_weights_path

@@ -74,7 +74,8 @@ def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
     b = check_blurry(blurry, events.width, events.height)
     prep = EdiMethod(3, contrast, hot_pixels).prepare(b, events, exposure)
     mid = prep.model.latent(b, np.array([0.5]), prep.contrast)
-    res = motion_deblur(b, events, exposure, np.array([0.5]), mid, mid[0], prep.hot)
+    res = motion_deblur(b, events, exposure, np.array([0.5]), mid, mid[0], prep.hot,
+                       contrast=prep.contrast)
     w, h = events.width, events.height
     ev = events.within(exposure)
     x, y = ev.x.astype(np.float64), ev.y.astype(np.float64)
@@ -106,12 +107,13 @@ def motion_summary(views: MotionViews) -> dict[str, Any]:
         "time": "u: fraction of the exposure (0 = start, 1 = end); the model is centred on "
                 "mid-exposure, tau = u - 0.5",
         "model": "p(tau) = c + exp(zoom*tau) R(rotation*tau) h(p0 - c) + velocity*tau "
-                 "+ acceleration*tau^2/2, h(r) = r / (1 + tau * perspective . r)",
+                 "+ acceleration*tau^2/2 + jerk*tau^3/6, h(r) = r / (1 + tau * perspective . r)",
         "velocity_px_per_exposure": [_r(vx), _r(vy)],
         "velocity_px_per_s": [_r(vx * per_s, 2), _r(vy * per_s, 2)],
         "direction_deg": _r(math.degrees(math.atan2(vy, vx)) % 360.0, 2),
         "direction": "angle of the velocity from +x (right) towards +y (down), degrees",
         "acceleration_px_per_exposure2": [_r(m.acceleration[0]), _r(m.acceleration[1])],
+        "jerk_px_per_exposure3": [_r(m.jerk[0]), _r(m.jerk[1])],
         "rotation_rad_per_exposure": _r(m.rotation, 6),
         "rotation_deg_per_exposure": _r(math.degrees(m.rotation), 4),
         "zoom_log_scale_per_exposure": _r(m.zoom, 6),

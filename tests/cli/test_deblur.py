@@ -517,7 +517,8 @@ def test_binned_trmd_with_tiny_weights(sample, tmp_path, bins_per_frame):
     frames = binned_frames(sample, bins_per_frame)
     images, bins = write_binned_set(tmp_path / "set", frames, "mat", "flat")
     out = tmp_path / "o"
-    r = run(images, bins, "-o", out, "--weights", w, "--threads", "1", "--precision", "fp32")
+    r = run(images, bins, "-o", out, "--method", "trmd", "--weights", w, "--threads", "1",
+            "--precision", "fp32")
     assert r.exit_code == 0, r.output
     method = TrmdMethod(2, w, threads=1, precision="fp32")
     said = [ln for ln in r.stderr.splitlines() if "binned events" in ln]

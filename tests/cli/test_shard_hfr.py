@@ -111,7 +111,8 @@ def test_trmd_in_two_jobs_equals_one_process(recs, tmp_path):
     from trmd_cli.models.weights import save_weights
 
     w = save_weights(tmp_path / "w.safetensors", create_model("test_trmd", n=2), meta={})
-    args = ["hfr", str(recs / "b.h5"), "--weights", str(w), "--per-exposure", "6",
+    args = ["hfr", str(recs / "b.h5"), "--method", "trmd", "--weights", str(w),
+            "--per-exposure", "6",
             "--precision", "fp32", "--threads", "1"]
     for out, extra in (("ref", []), ("out", ["--jobs", "2"])):
         r = runner.invoke(app, [*args, "-o", str(tmp_path / out), *extra])

@@ -58,8 +58,8 @@ def test_cmax_recovers_simulated_camera_motion(seed):
 
 @pytest.mark.parametrize("perspective", [(0.0, 0.0), (4.0, -3.0)])
 def test_contrast_gradient_matches_finite_differences(perspective):
-    """The analytic gradient of the contrast gain (all eight parameters) against central
-    differences of the gain itself, on random events at every pyramid scale, with and
+    """The analytic gradient of the contrast gain (all ten parameters: the jerk's too) against
+    central differences of the gain itself, on random events at every pyramid scale, with and
     without a perspective term."""
     from trmd_cli.motion.cmax import _Level
 
@@ -69,12 +69,12 @@ def test_contrast_gradient_matches_finite_differences(perspective):
     # structure to sharpen: events concentrated on a few lines
     x[: n // 2] = rng.integers(0, 12, n // 2) * 29.0 + rng.normal(0, 0.7, n // 2)
     u = rng.uniform(0, 1, n)
-    q = np.array([3.0, -6.0, 2.0, 1.0, -2.0, 2.5, *perspective])
+    q = np.array([3.0, -6.0, 2.0, 1.0, -2.0, 2.5, *perspective, 1.5, -2.0])
     for scale in (1.0, 2.0, 4.0):
         level = _Level(x, y, u, W, H, scale, ((W - 1) / 2, (H - 1) / 2), 0.5 * W)
-        _, grad = level.gain_and_gradient(q, free=8)
+        _, grad = level.gain_and_gradient(q, free=10)
         fd = np.array([(level.gain(q + e) - level.gain(q - e)) / 0.02
-                       for e in 0.01 * np.eye(8)])
+                       for e in 0.01 * np.eye(10)])
         # the gain is piecewise smooth (bilinear votes): differences agree to ~1 % of |∇|
         np.testing.assert_allclose(grad, fd, rtol=0.02, atol=0.01 * np.linalg.norm(fd))
 
@@ -100,3 +100,23 @@ def test_too_few_events_give_no_estimate():
                      np.array([0, 10], np.int64), np.array([1, -1], np.int8), W, H)
     m = estimate_motion(ev, Exposure(0, 100))
     assert m.confidence == 0.0 and m.events == 2 and m.velocity == (0.0, 0.0)
+
+
+def test_jerk_follows_a_bending_path():
+    """A camera path that bends within the exposure (the simulator's cubic knots, curvature
+    1): the search keeps a jerk and lands nearer the true path than without one (measured
+    0.19 against 0.28 px)."""
+    from trmd_cli.simulate import SensorConfig
+
+    img = texture(520, 700, seed=3)
+    motion = MotionRanges(translation_px=24, rotation_deg=1, scale=0.02, perspective=0,
+                          curvature=1.0)
+    s = make_sample(img, rng=np.random.default_rng(3), motion=motion,
+                    sensor=SensorConfig.clean(0.2))
+    plan = plan_sequence(img, rng=np.random.default_rng(3), motion=motion)
+    hot = hot_pixel_mask(s.events, s.exposure)
+    m = estimate_motion(s.events, s.exposure, hot)
+    flat = estimate_motion(s.events, s.exposure, hot, MotionSearch(jerk=False))
+    assert m.jerk != (0.0, 0.0) and flat.jerk == (0.0, 0.0)
+    assert true_epe(plan, m) < 0.22
+    assert true_epe(plan, m) < true_epe(plan, flat) - 0.05

@@ -41,11 +41,12 @@ from .options import (
 
 #: a literal so --help need not import the methods; a test keeps it equal to
 #: methods.DEFAULT_METHOD
-_DEFAULT_METHOD_HELP = "trmd"
+_DEFAULT_METHOD_HELP = "fused"
 
 Method = Annotated[str | None, typer.Option(
-    "--method", help="edi (model-based, no weights), trmd (learned residuals) or motion "
-    "(deconvolution along the events' global motion, guarded by EDI). "
+    "--method", help="edi (model-based, no weights), trmd (learned residuals), motion "
+    "(deconvolution along the events' global motion, guarded by EDI) or fused (trmd and "
+    "motion fused by a small trained network). "
     f"Default: {_DEFAULT_METHOD_HELP}.")]
 NOpt = Annotated[int | None, typer.Option(
     "--n", min=1, max=16, help="Latent frames 2N+1 per exposure (default 3 → 7 frames; TRMD: "
@@ -56,9 +57,10 @@ Contrast = Annotated[str, typer.Option(
 TimeOffset = Annotated[str | None, typer.Option(
     "--time-offset", help="Shift the exposure window(s) relative to the events, e.g. -40ms "
     "(real DAVIS data often needs tens of ms).")]
-Weights = Annotated[Path | None, typer.Option("--weights", help="TRMD weights (.safetensors); "
-                                                 "implies --method trmd. Default: the shipped "
-                                                 "weights.", readable=False)]
+Weights = Annotated[Path | None, typer.Option("--weights", help="RE-Net weights "
+                                                 "(.safetensors) for trmd and fused; without "
+                                                 "--method it implies one of them. Default: "
+                                                 "the shipped weights.", readable=False)]
 HotPixels = Annotated[bool, typer.Option("--hot-pixels/--keep-hot-pixels",
                                          help="Ignore the events of hot pixels (default on).")]
 BitDepth = Annotated[int, typer.Option("--bit-depth", help="PNG bit depth: 8 or 16.")]
@@ -97,12 +99,17 @@ def contrast_scope(text: str) -> str:
     return "frame" if text.strip().lower() == "frame" else "recording"
 
 
+#: the methods that run RE-Net weights (``--weights``)
+_TAKE_WEIGHTS = ("trmd", "fused")
+
+
 def choose_method(method: str | None, weights: Path | None, default: str) -> str:
-    """The method to run: ``--weights`` without ``--method`` means TRMD (else a damaged weights
-    file would be ignored without a word); with ``--method edi`` it is ignored with a warning."""
+    """The method to run: ``--weights`` without ``--method`` means the default when it runs
+    RE-Net, else TRMD (a damaged weights file is never ignored without a word); with
+    ``--method edi`` it is ignored with a warning."""
     if method is None:
-        return "trmd" if weights is not None else default
-    if weights is not None and method.lower() != "trmd":
+        return default if weights is None or default in _TAKE_WEIGHTS else "trmd"
+    if weights is not None and method.lower() not in _TAKE_WEIGHTS:
         warn(f"--weights is ignored: --method is {method}")
     return method.lower()
 

@@ -44,7 +44,7 @@ def eval_command(
         "--methods", help="Comma-separated: blurry, edi, edi-true-c (EDI with a simulated "
         "set's true c), trmd, motion, motion-true-path (motion deconvolution along a simulated "
         "set's true camera path instead of the estimated one: the estimate's cost, as the gap "
-        "between the two rows).")
+        "between the two rows), fused (trmd and motion fused by a small trained network).")
     ] = "blurry,edi,trmd",
     n: N = 3,
     json_out: Annotated[Path | None, typer.Option(
@@ -89,8 +89,8 @@ def eval_command(
     for d in datasets:
         check_input_path(d)
     chosen = parse_methods(methods)
-    if weights is not None and "trmd" not in chosen:
-        warn("--weights is ignored: trmd is not among --methods")
+    if weights is not None and not {"trmd", "fused"} & set(chosen):
+        warn("--weights is ignored: neither trmd nor fused is among --methods")
     if json_out is not None:
         check_output(json_out, overwrite, inputs=[*datasets, weights])
     if strip is not None:

@@ -58,7 +58,7 @@ def motion(
     length, colour-wheel legend with its scale), weight.png (where the deconvolution is used:
     white; where EDI is: black), events.png (the events as recorded | carried to mid-exposure
     by the motion: the sharper, the better the motion) and motion.json (velocity in px per
-    exposure and per second, acceleration, rotation, zoom, perspective, confidence, with
+    exposure and per second, acceleration, jerk, rotation, zoom, perspective, confidence, with
     units)."""
     from rich.progress import Progress
 

@@ -303,7 +303,7 @@ def _deconvolved(blurry, events, exposure, n: int, prep, motion, trusted: bool
     if not trusted:
         return lat[:-1].astype(np.float32), np.zeros_like(lat[:-1], np.float32)
     res = motion_deblur(blurry, events, exposure, fr, lat[:-1], lat[-1], prep.hot,
-                        motion=motion)
+                        motion=motion, contrast=prep.contrast)
     weight = np.zeros_like(res.frames, np.float32) if res.weights is None else res.weights
     return res.frames.astype(np.float32), weight.astype(np.float32)
 

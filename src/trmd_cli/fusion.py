@@ -1,0 +1,85 @@
+"""TRMD and the motion method, fused: what a small trained network
+(:class:`~trmd_cli.models.fusion.FusionNet`) reads and how the fused frames are made.
+
+The motion method (:func:`~trmd_cli.deconv.motion_deblur`) recovers from B the texture no event
+recorded, wherever its global motion explains the blur; RE-Net knows the events' edges and
+copes with what moves on its own; EDI is the events' reading. Per latent instant k, the fusion
+network is given the three frames, B, the motion guard's weight and the events between the
+middle instant and k (as the log-intensity change ``c·V(k)``), and corrects the motion method's
+frame. Its last layer starts at zero, so an untrained network returns the motion method exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .edi import check_blurry
+from .events import EventStream, Exposure
+
+__all__ = ["FusionInputs", "fusion_inputs"]
+
+
+@dataclass(frozen=True, eq=False)
+class FusionInputs:
+    """What the fusion network reads for one exposure, at its 2N+1 instants k/2N.
+
+    Attributes:
+        blurry: (H, W[, 3]) float32 [0, 1].
+        edi, trmd, motion: (2N+1, H, W[, 3]) float32, the three methods' frames.
+        weight: (2N+1, H, W) float32 [0, 1], the motion deconvolution's share in ``motion``
+            (0 where the guard fell back to EDI).
+        events: (2N+1, H, W) float32, ``c · V(k)``: the log-intensity change from the middle
+            instant to k the events report (0 at k = N).
+        prepared: the exposure as settled once for all three
+            (:class:`~trmd_cli.methods.Prepared`: c, the hot pixels, the per-pixel sort).
+        notes: what the user should know (the motion method's fallbacks).
+    """
+
+    blurry: np.ndarray
+    edi: np.ndarray
+    trmd: np.ndarray
+    motion: np.ndarray
+    weight: np.ndarray
+    events: np.ndarray
+    prepared: object
+    notes: tuple[str, ...] = ()
+
+    @property
+    def contrast(self) -> float:
+        """c used throughout."""
+        return float(self.prepared.contrast)
+
+
+def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, trmd,
+                  n: int) -> FusionInputs:
+    """Run EDI, TRMD and the motion method on one exposure as ``trmd deblur`` runs each.
+
+    Args:
+        blurry: (H, W[, 3]) float32 [0, 1]; events, exposure: the stream and its window (µs).
+        trmd: a :class:`~trmd_cli.methods.TrmdMethod` (its c, given, per recording or per
+            frame, is the c of all three).
+        n: 2N+1 instants; must be the weights' N.
+    """
+    from .deconv import motion_deblur
+    from .voxel import scer_voxels
+
+    b = check_blurry(blurry, events.width, events.height)
+    prep = trmd.prepare(b, events, exposure)
+    frames = trmd.grid_frames(b, events, exposure, prep)
+    fr = np.arange(2 * n + 1) / (2 * n)
+    lat = prep.model.latent(b, np.append(fr, 0.5), prep.contrast)
+    edi, mid = lat[:-1], lat[-1]
+    res = motion_deblur(b, events, exposure, fr, edi, mid, prep.hot, contrast=prep.contrast)
+    h, w = b.shape[:2]
+    weight = np.zeros((2 * n + 1, h, w), np.float32) if res.weights is None else res.weights
+    vox = scer_voxels(events, exposure, n, window=prep.window)
+    dlog = np.zeros((2 * n + 1, h, w), np.float32)
+    k = [i for i in range(2 * n + 1) if i != n]
+    dlog[k] = prep.contrast * vox
+    if prep.hot is not None:
+        dlog[:, prep.hot] = 0.0
+    return FusionInputs(b, edi.astype(np.float32), frames.astype(np.float32),
+                        res.frames.astype(np.float32), weight.astype(np.float32), dlog,
+                        prep, res.notes)

@@ -1,0 +1,167 @@
+"""The fusion network and the fused method: its inputs, its start, its files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from trmd_cli.errors import WeightsError
+from trmd_cli.fusion import fusion_inputs
+from trmd_cli.methods import FusedMethod, MotionMethod, TrmdMethod
+from trmd_cli.models.fusion import (
+    EVENT_CLIP,
+    FusionNet,
+    default_fusion_path,
+    fusion_planes,
+    load_fusion,
+    save_fusion,
+)
+from trmd_cli.models.weights import default_weights_path
+from trmd_cli.simulate import MotionRanges, SensorConfig, make_sample
+
+from .helpers.data import texture
+
+needs_weights = pytest.mark.skipif(not default_weights_path().is_file(),
+                                   reason="no shipped RE-Net weights")
+
+
+def _sample(seed: int = 3):
+    motion = MotionRanges(translation_px=12, rotation_deg=0.5, scale=0.01, perspective=0,
+                          curvature=0.2, foreground_prob=0.0)
+    return make_sample(texture(300, 400, seed=seed), size=(96, 72),
+                       rng=np.random.default_rng(seed), motion=motion,
+                       sensor=SensorConfig.clean(0.2), read_noise=0.003)
+
+
+def test_planes_are_laid_out_per_instant_and_channel():
+    """Colour frames: one row per (instant, channel), k-major; the weight, the clipped events
+    and the instant (k − N)/N shared by the channels; B repeated for every instant."""
+    rng = np.random.default_rng(0)
+    k, h, w, n = 5, 6, 7, 2
+    m, t, e = (rng.random((k, h, w, 3)).astype(np.float32) for _ in range(3))
+    b = rng.random((h, w, 3)).astype(np.float32)
+    wt = rng.random((k, h, w)).astype(np.float32)
+    ev = (10 * rng.standard_normal((k, h, w))).astype(np.float32)
+    p = fusion_planes(m, t, e, b, wt, ev, n)
+    assert p.shape == (k * 3, 7, h, w)
+    row = 3 * 4 + 2  # instant 4, channel 2
+    np.testing.assert_array_equal(p[row, 0].numpy(), m[4, ..., 2])
+    np.testing.assert_array_equal(p[row, 1].numpy(), t[4, ..., 2])
+    np.testing.assert_array_equal(p[row, 2].numpy(), e[4, ..., 2])
+    np.testing.assert_array_equal(p[row, 3].numpy(), b[..., 2])
+    np.testing.assert_array_equal(p[row, 4].numpy(), wt[4])
+    np.testing.assert_array_equal(p[row, 5].numpy(), np.clip(ev[4], -EVENT_CLIP, EVENT_CLIP))
+    assert (p[row, 6] == (4 - n) / n).all()
+
+
+def test_an_untrained_network_returns_the_motion_frame():
+    """The last convolution starts at zero: output = the first plane, exactly, at any size
+    (odd sizes are padded inside and cropped back)."""
+    x = torch.rand(3, 7, 33, 50)
+    with torch.no_grad():
+        out = FusionNet(8)(x)
+    assert out.shape == (3, 1, 33, 50)
+    assert torch.equal(out[:, 0], x[:, 0])
+
+
+def test_weights_round_trip_and_bad_files(tmp_path):
+    torch.manual_seed(0)
+    net = FusionNet(8)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.normal_(0, 0.05)
+    path = save_fusion(tmp_path / "f.safetensors", net, {"trained_on": "x.h5", "steps": 3})
+    back, meta = load_fusion(path)
+    assert meta["trained_on"] == "x.h5" and meta["steps"] == "3"
+    x = torch.rand(2, 7, 20, 24)
+    with torch.no_grad():
+        assert torch.equal(back(x), net(x))
+    with pytest.raises(WeightsError, match="no fusion weights"):
+        load_fusion(tmp_path / "missing.safetensors")
+    junk = tmp_path / "junk.safetensors"
+    junk.write_bytes(b"not a safetensors file")
+    with pytest.raises(WeightsError, match="not a readable safetensors"):
+        load_fusion(junk)
+    from safetensors.torch import save_file
+
+    other = tmp_path / "other.safetensors"
+    save_file({"w": torch.zeros(1)}, str(other), metadata={"format": "trmd-weights"})
+    with pytest.raises(WeightsError, match="not fusion weights"):
+        load_fusion(other)
+
+
+@needs_weights
+def test_fused_with_an_untrained_network_is_the_motion_method(tmp_path):
+    """With the network at its start the fused frames are the motion method's, frame for
+    frame, and its inputs are the three methods as each runs alone (one c for all)."""
+    s = _sample()
+    path = save_fusion(tmp_path / "zero.safetensors", FusionNet(8), {})
+    fused = FusedMethod(3, fusion_weights=path, threads=1)
+    out = fused(s.blurry, s.events, s.exposure)
+    c = out.contrast
+    alone = MotionMethod(3, contrast=c)(s.blurry, s.events, s.exposure)
+    np.testing.assert_allclose(out.frames, alone.frames, atol=1e-6)
+    ins = fusion_inputs(s.blurry, s.events, s.exposure, TrmdMethod(3, contrast=c, threads=1), 3)
+    trmd = TrmdMethod(3, contrast=c, threads=1)(s.blurry, s.events, s.exposure)
+    np.testing.assert_allclose(ins.trmd, trmd.frames, atol=1e-6)
+    assert ins.contrast == pytest.approx(c)
+    assert np.all(ins.events[3] == 0)
+    # instants on the grid are the grid's frames; one between them is propagated from the
+    # nearest by the events, as TRMD does
+    grid = s.exposure.instants_us(3)
+    some = fused(s.blurry, s.events, s.exposure, grid[[0, 3]])
+    np.testing.assert_allclose(some.frames, out.frames[[0, 3]], atol=1e-6)
+    between = fused(s.blurry, s.events, s.exposure, np.array([grid[3] + 1.0]))
+    assert between.frames.shape == (1, 72, 96)
+    # 1 µs after the middle: almost no event between, so almost the middle frame
+    assert np.abs(between.frames[0] - out.frames[3]).mean() < 1e-3
+    # binned data: no event times, no motion: TRMD's frames, said once
+    bins = np.random.default_rng(1).integers(-2, 3, (6, 72, 96)).astype(np.float32)
+    got = fused.from_bins(s.blurry, bins)
+    want = TrmdMethod(3, threads=1).from_bins(s.blurry, bins)
+    np.testing.assert_allclose(got.frames, want.frames, atol=1e-6)
+    assert any("no event times" in note for note in got.notes)
+
+
+@pytest.mark.skipif(not (default_fusion_path().is_file() and default_weights_path().is_file()),
+                    reason="no shipped fusion weights")
+def test_shipped_fusion_beats_the_motion_method_on_a_clean_sample():
+    """A synthetic camera shake with known ground truth: the shipped fusion is above the motion
+    method (which it starts from) on the middle frame and the sequence."""
+    from trmd_cli.metrics import psnr
+
+    s = _sample(seed=5)
+    fused = FusedMethod(3, threads=1)(s.blurry, s.events, s.exposure)
+    alone = MotionMethod(3, contrast=fused.contrast)(s.blurry, s.events, s.exposure)
+
+    def seq(frames):
+        return float(np.mean([psnr(np.clip(a, 0, 1), b) for a, b in zip(frames, s.sharp)]))
+
+    assert psnr(np.clip(fused.frames[3], 0, 1), s.sharp[3]) > \
+        psnr(np.clip(alone.frames[3], 0, 1), s.sharp[3])
+    assert seq(fused.frames) > seq(alone.frames)
+
+
+@needs_weights
+def test_beyond_its_sensors_the_network_is_not_used(tmp_path):
+    """A network that changes every frame: at c = 0.2 the fused frames differ from the motion
+    method's; at c = 0.8 (beyond MAX_CONTRAST) they are the motion method's, with a note."""
+    from trmd_cli.models.fusion import MAX_CONTRAST
+
+    s = _sample()
+    net = FusionNet(8)
+    with torch.no_grad():
+        net.out.bias.fill_(0.05)
+    path = save_fusion(tmp_path / "shift.safetensors", net, {})
+    inside = FusedMethod(3, contrast=0.2, fusion_weights=path, threads=1)(
+        s.blurry, s.events, s.exposure)
+    alone = MotionMethod(3, contrast=0.2)(s.blurry, s.events, s.exposure)
+    assert np.abs(inside.frames - alone.frames).mean() > 0.04
+    c = 0.8
+    assert c > MAX_CONTRAST
+    beyond = FusedMethod(3, contrast=c, fusion_weights=path, threads=1)(
+        s.blurry, s.events, s.exposure)
+    alone = MotionMethod(3, contrast=c)(s.blurry, s.events, s.exposure)
+    np.testing.assert_allclose(beyond.frames, alone.frames, atol=1e-6)
+    assert any("beyond the fusion network" in note for note in beyond.notes)
