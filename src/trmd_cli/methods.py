@@ -255,6 +255,27 @@ def _with_edi(method, edi: EdiMethod):
     return out
 
 
+def _grid_match(exposure: Exposure, n: int, instants_us) -> tuple[np.ndarray, np.ndarray,
+                                                                    np.ndarray, np.ndarray]:
+    """``(grid, inst, nearest, exact)``: the 2N+1 instants (µs), the wanted ones (None = the
+    grid), the grid frame nearest each, and whether it is on the grid (within ½ µs)."""
+    grid = exposure.instants_us(n)
+    inst = grid if instants_us is None else np.asarray(instants_us, np.float64)
+    nearest = np.abs(inst[:, None] - grid[None]).argmin(axis=1)
+    return grid, inst, nearest, np.isclose(inst, grid[nearest], atol=0.5)
+
+
+def _at_instants(frames: np.ndarray, events: EventStream, grid: np.ndarray, inst: np.ndarray,
+                 nearest: np.ndarray, contrast: float, hot: np.ndarray | None) -> np.ndarray:
+    """The grid's ``frames`` at ``inst``: each propagated from its nearest grid frame by event
+    integration with ``contrast`` (:func:`~trmd_cli.edi.propagate`)."""
+    out = np.empty((len(inst), *frames.shape[1:]), np.float32)
+    for k in np.unique(nearest):
+        sel = nearest == k
+        out[sel] = propagate(frames[k], events, grid[k], inst[sel], contrast, hot)
+    return out
+
+
 def window_model(events: EventStream | np.ndarray, exposure: Exposure | None,
                  hot_pixels: bool) -> tuple[EdiEvents | EdiBins, np.ndarray | None,
                                             PixelEvents | None]:
@@ -378,10 +399,7 @@ class TrmdMethod:
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         b = check_blurry(blurry, events.width, events.height)
-        grid = exposure.instants_us(self.n)
-        inst = grid if instants_us is None else np.asarray(instants_us, np.float64)
-        nearest = np.abs(inst[:, None] - grid[None]).argmin(axis=1)
-        exact = np.isclose(inst, grid[nearest], atol=0.5)
+        grid, inst, nearest, exact = _grid_match(exposure, self.n, instants_us)
         # in-between instants are propagated from the nearest frame with c: settle it for them
         settle = self.needs.contrast or not exact.all()
         prep = self.prepare(b, events, exposure) if settle else None
@@ -392,10 +410,7 @@ class TrmdMethod:
         if exact.all():
             return Estimate(frames[nearest], inst, c, prep.estimated, prep.reliable,
                             prep.hot_pixels, prep.note)
-        out = np.empty((len(inst), *frames.shape[1:]), np.float32)
-        for k in np.unique(nearest):
-            sel = nearest == k
-            out[sel] = propagate(frames[k], events, grid[k], inst[sel], c, prep.hot)
+        out = _at_instants(frames, events, grid, inst, nearest, c, prep.hot)
         return Estimate(out, inst, c, prep.estimated, prep.reliable, prep.hot_pixels,
                         prep.note)
 
@@ -558,10 +573,7 @@ class FusedMethod:
         from .models.fusion import MAX_CONTRAST, fusion_planes
 
         b = check_blurry(blurry, events.width, events.height)
-        grid = exposure.instants_us(self.n)
-        inst = grid if instants_us is None else np.asarray(instants_us, np.float64)
-        nearest = np.abs(inst[:, None] - grid[None]).argmin(axis=1)
-        exact = np.isclose(inst, grid[nearest], atol=0.5)
+        grid, inst, nearest, exact = _grid_match(exposure, self.n, instants_us)
         ins = fusion_inputs(b, events, exposure, self._trmd, self.n)
         prep = ins.prepared
         # the motion method's own fallbacks ("used EDI") are not this method's: where the
@@ -581,15 +593,8 @@ class FusedMethod:
             if ins.motion.ndim == 4:  # (K, C, H, W) → (K, H, W, C)
                 frames = frames.transpose(0, 2, 3, 1)
         frames = np.ascontiguousarray(frames, np.float32)
-        if not exact.all():
-            res = np.empty((len(inst), *frames.shape[1:]), np.float32)
-            for j in np.unique(nearest):
-                sel = nearest == j
-                res[sel] = propagate(frames[j], events, grid[j], inst[sel], prep.contrast,
-                                     prep.hot)
-            frames = res
-        else:
-            frames = frames[nearest]
+        frames = frames[nearest] if exact.all() else \
+            _at_instants(frames, events, grid, inst, nearest, prep.contrast, prep.hot)
         return Estimate(frames, inst, prep.contrast, prep.estimated, prep.reliable,
                         prep.hot_pixels, prep.note, notes)
 
