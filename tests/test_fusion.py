@@ -165,3 +165,26 @@ def test_beyond_its_sensors_the_network_is_not_used(tmp_path):
     alone = MotionMethod(3, contrast=c)(s.blurry, s.events, s.exposure)
     np.testing.assert_allclose(beyond.frames, alone.frames, atol=1e-6)
     assert any("beyond the fusion network" in note for note in beyond.notes)
+
+
+def test_info_describes_fusion_weights(tmp_path):
+    """`trmd info` on fusion weights: what they are, their size and held-out figures."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from trmd_cli.cli.app import app
+    from trmd_cli.models.fusion import describe_fusion, is_fusion_file
+
+    path = save_fusion(tmp_path / "f.safetensors", FusionNet(8),
+                       {"trained_on": "set.h5", "steps": 7,
+                        "held_out_psnr": {"motion": [30.0, 29.0], "fused": [31.0, 30.5]}})
+    assert is_fusion_file(path) and not is_fusion_file(tmp_path / "missing.safetensors")
+    d = describe_fusion(path)
+    assert d["width"] == 8 and d["steps"] == 7 and d["held_out_psnr"]["fused"] == [31.0, 30.5]
+    assert d["parameters"] == sum(p.numel() for p in FusionNet(8).parameters())
+    r = CliRunner().invoke(app, ["info", "--json", str(path)])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["trained_on"] == "set.h5"
+    r = CliRunner().invoke(app, ["info", str(path)])
+    assert r.exit_code == 0 and "fusion network" in r.stdout and "31.00" in r.stdout

@@ -37,7 +37,8 @@ def info(
     """Describe an event file: format, events, sensor, duration, rate, polarity, frames.
 
     Given TRMD weights (.safetensors): architecture, parameters, what the network needs, the
-    recipe and data it was trained on, and its validation figures.
+    recipe and data it was trained on, and its validation figures; given the fusion network's
+    weights: its size, training set and held-out figures.
     """
     from ..read.paths import check_input_path
 
@@ -77,9 +78,35 @@ def info(
     Console().print(t)
 
 
+def _fusion_info(file: Path, as_json: bool) -> None:
+    from ..models.fusion import describe_fusion
+
+    d = describe_fusion(file)
+    if as_json:
+        typer.echo(json.dumps(d, indent=2))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=str(file), show_header=False, title_justify="left")
+    t.add_row("weights", f"{d['weights']}, {d['parameters']:,} parameters, width "
+                         f"{d['width']}, {d['size_kib']} KiB, sha256 {d['sha256']}")
+    if d["trained_on"]:
+        t.add_row("trained on", f"{d['trained_on']}, {d['steps']} steps")
+    held = d["held_out_psnr"] or {}
+    for i, (m, v) in enumerate(held.items()):
+        t.add_row("held out" if i == 0 else "",
+                  f"{m}: PSNR {v[0]:.2f} / {v[1]:.2f} dB (middle / sequence)")
+    Console().print(t)
+
+
 def _weights_info(file: Path, as_json: bool) -> None:
+    from ..models.fusion import is_fusion_file
     from ..models.weights import describe_weights
 
+    if is_fusion_file(file):
+        _fusion_info(file, as_json)
+        return
     d = describe_weights(file)
     if as_json:
         typer.echo(json.dumps(d, indent=2))

@@ -27,7 +27,7 @@ from torch import nn
 from ..errors import WeightsError
 
 __all__ = ["FusionNet", "FUSION_FORMAT", "DEFAULT_FUSION", "MAX_CONTRAST", "default_fusion_path",
-           "fusion_planes", "save_fusion", "load_fusion"]
+           "fusion_planes", "save_fusion", "load_fusion", "is_fusion_file", "describe_fusion"]
 
 FUSION_FORMAT = "trmd-fusion"
 #: the shipped fusion weights' file name, beside the RE-Net weights
@@ -153,3 +153,37 @@ def load_fusion(path: str | Path | None = None) -> tuple[FusionNet, dict[str, st
     except (RuntimeError, ValueError) as e:
         raise WeightsError(f"fusion weights do not fit the network ({e})", path=p) from None
     return model.eval(), meta
+
+
+def is_fusion_file(path: str | Path) -> bool:
+    """Whether ``path`` is a safetensors file of fusion weights (by its metadata)."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return (f.metadata() or {}).get("format") == FUSION_FORMAT
+    except (SafetensorError, OSError, ValueError):
+        return False
+
+
+def describe_fusion(path: str | Path) -> dict[str, Any]:
+    """What ``trmd info`` says of fusion weights: the network, its file, what it was trained
+    on and its held-out figures (JSON values)."""
+    import hashlib
+
+    model, meta = load_fusion(path)
+    p = Path(path)
+
+    def value(key: str) -> Any:
+        v = meta.get(key)
+        try:
+            return json.loads(v) if v is not None else None
+        except ValueError:
+            return v
+
+    return {"weights": "fusion network (--method fused)", "width": model.width,
+            "parameters": sum(t.numel() for t in model.parameters()),
+            "size_kib": round(p.stat().st_size / 1024, 1),
+            "sha256": hashlib.sha256(p.read_bytes()).hexdigest()[:12],
+            "trained_on": value("trained_on"), "steps": value("steps"),
+            "held_out_psnr": value("held_out_psnr")}
