@@ -683,6 +683,15 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
         x, y, u = x[keep], y[keep], u[keep]
     gains = tile_gains(motion, x.astype(np.float64), y.astype(np.float64), u, w, h)
     wgt = guard_weights(d.data_weight, motion.confidence, gains)
+    share = float(wgt.mean())
+    if share < MIN_SHARE:
+        # a motion that explains less than half of B is mostly something else's (movers as
+        # large as the background, or both mixed): what it does explain is not to be trusted
+        # either (on 16 frames with two foreground layers, the frames below this share lost
+        # 0.4–3.3 dB to EDI with the rest blended in)
+        return MotionDeblur(edi_frames, zero, motion,
+                            (f"the motion explains only {100 * share:.0f} % of the frame "
+                             f"(needs {100 * MIN_SHARE:.0f} %): used EDI",))
     deb = d.frames(fractions)
     # per instant, also where the frame agrees with EDI's: B cannot tell where a mover was
     # when, so the background it swept is judged at each instant against the events' reading
@@ -693,14 +702,4 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
                         for f, e in zip(deb, edi_frames)])
     ww = weights[..., None] if deb.ndim == 4 else weights
     out = (ww * deb + (1.0 - ww) * edi_frames).astype(np.float32)
-    notes: tuple[str, ...] = ()
-    share = float(wgt.mean())
-    if share < MIN_SHARE:
-        # a motion that explains less than half of B is mostly something else's (movers as
-        # large as the background, or both mixed): what it does explain is not to be trusted
-        # either (on 16 frames with two foreground layers, the frames below this share lost
-        # 0.4–3.3 dB to EDI with the rest blended in)
-        return MotionDeblur(edi_frames, zero, motion,
-                            (f"the motion explains only {100 * share:.0f} % of the frame "
-                             f"(needs {100 * MIN_SHARE:.0f} %): used EDI",))
-    return MotionDeblur(out, wgt, motion, notes, weights)
+    return MotionDeblur(out, wgt, motion, (), weights)

@@ -53,7 +53,7 @@ class FusionInputs:
 
 
 def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, trmd,
-                  n: int) -> FusionInputs:
+                  n: int, prepared=None) -> FusionInputs:
     """Run EDI, TRMD and the motion method on one exposure as ``trmd deblur`` runs each.
 
     Args:
@@ -61,17 +61,16 @@ def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, t
         trmd: a :class:`~trmd_cli.methods.TrmdMethod` (its c, given, per recording or per
             frame, is the c of all three).
         n: 2N+1 instants; must be the weights' N.
+        prepared: the exposure already settled by ``trmd.prepare`` (None: settled here).
     """
-    from .deconv import motion_deblur
+    from .methods import motion_frames
     from .voxel import scer_voxels
 
     b = check_blurry(blurry, events.width, events.height)
-    prep = trmd.prepare(b, events, exposure)
+    prep = trmd.prepare(b, events, exposure) if prepared is None else prepared
     frames = trmd.grid_frames(b, events, exposure, prep)
     fr = np.arange(2 * n + 1) / (2 * n)
-    lat = prep.model.latent(b, np.append(fr, 0.5), prep.contrast)
-    edi, mid = lat[:-1], lat[-1]
-    res = motion_deblur(b, events, exposure, fr, edi, mid, prep.hot, contrast=prep.contrast)
+    edi, res = motion_frames(b, events, exposure, fr, prep)
     h, w = b.shape[:2]
     weight = np.zeros((2 * n + 1, h, w), np.float32) if res.weights is None else res.weights
     vox = scer_voxels(events, exposure, n, window=prep.window)

@@ -46,6 +46,7 @@ __all__ = [
     "TrmdMethod",
     "MotionMethod",
     "FusedMethod",
+    "motion_frames",
     "REGISTRY",
     "make_method",
     "unavailable",
@@ -276,6 +277,22 @@ def _at_instants(frames: np.ndarray, events: EventStream, grid: np.ndarray, inst
     return out
 
 
+def motion_frames(blurry: np.ndarray, events: EventStream, exposure: Exposure,
+                  fractions: np.ndarray, prep: Prepared, motion=None):
+    """The motion method on a settled exposure: ``(edi, res)`` — EDI's frames at
+    ``fractions`` of the exposure (its fallback) and the guarded deconvolution
+    (:class:`~trmd_cli.deconv.MotionDeblur`), both with ``prep``'s c and hot pixels.
+    ``motion``: a path to use instead of the estimate, its evidence already measured."""
+    from .deconv import motion_deblur
+
+    # EDI at the instants and at mid-exposure in one pass (one blur integral, not two)
+    lat = prep.model.latent(blurry, np.append(fractions, 0.5), prep.contrast)
+    edi, mid = lat[:-1], lat[-1]
+    res = motion_deblur(blurry, events, exposure, fractions, edi, mid, prep.hot,
+                        motion=motion, contrast=prep.contrast)
+    return edi, res
+
+
 def window_model(events: EventStream | np.ndarray, exposure: Exposure | None,
                  hot_pixels: bool) -> tuple[EdiEvents | EdiBins, np.ndarray | None,
                                             PixelEvents | None]:
@@ -496,20 +513,14 @@ class MotionMethod:
         return _with_edi(self, self._edi.for_recording(recording))
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
-        from .deconv import motion_deblur
-
         b = check_blurry(blurry, events.width, events.height)
         inst = exposure.instants_us(self.n) if instants_us is None else \
             np.asarray(instants_us, np.float64)
         prep = self.prepare(b, events, exposure)
         fr = (inst - exposure.start_us) / exposure.duration_us
-        # EDI at the instants and at mid-exposure in one pass (one blur integral, not two)
-        lat = prep.model.latent(b, np.append(fr, 0.5), prep.contrast)
-        edi, mid = lat[:-1], lat[-1]
         given = None if self.motion is None else \
             self.motion.with_evidence(events, exposure, prep.hot)
-        res = motion_deblur(b, events, exposure, fr, edi, mid, prep.hot, motion=given,
-                           contrast=prep.contrast)
+        _, res = motion_frames(b, events, exposure, fr, prep, given)
         return Estimate(res.frames, inst, prep.contrast, prep.estimated, prep.reliable,
                         prep.hot_pixels, prep.note,
                         tuple(f"{self.note_prefix}{note}" for note in res.notes))
@@ -535,9 +546,8 @@ class FusedMethod:
                  device: str = "auto", threads: int | None = None,
                  contrast: float | None = None, hot_pixels: bool = True,
                  precision: str = "auto", fusion_weights: str | Path | None = None) -> None:
-        import hashlib
-
         from .models.fusion import default_fusion_path, load_fusion
+        from .models.weights import weights_hash
 
         self._trmd = TrmdMethod(n, weights, device, threads, contrast, hot_pixels, precision,
                                 settle_contrast=True)
@@ -546,8 +556,18 @@ class FusedMethod:
         fpath = default_fusion_path() if fusion_weights is None else Path(fusion_weights)
         #: the loaded fusion network (on the CPU: it is small) and its metadata
         self.fusion, self.fusion_meta = load_fusion(fpath)
-        fhash = hashlib.sha256(fpath.read_bytes()).hexdigest()[:12]
-        self.weights_hash = f"{self._trmd.weights_hash}+{fhash}"
+        self.weights_hash = f"{self._trmd.weights_hash}+{weights_hash(fpath)}"
+
+    @staticmethod
+    def missing_files() -> str | None:
+        """Why this installation cannot run the method beyond RE-Net's weights (see
+        :func:`unavailable`): the fusion network's weights do not ship; else None."""
+        from .models.fusion import default_fusion_path
+
+        if default_fusion_path().is_file():
+            return None
+        return ("this installation ships no fusion weights (weights_recipe/train_fusion.py "
+                "makes them)")
 
     @classmethod
     def from_config(cls, config: MethodConfig) -> FusedMethod:
@@ -574,16 +594,18 @@ class FusedMethod:
 
         b = check_blurry(blurry, events.width, events.height)
         grid, inst, nearest, exact = _grid_match(exposure, self.n, instants_us)
-        ins = fusion_inputs(b, events, exposure, self._trmd, self.n)
-        prep = ins.prepared
+        prep = self.prepare(b, events, exposure)
         # the motion method's own fallbacks ("used EDI") are not this method's: where the
         # motion is not used the network leans on TRMD, so they are not passed on
         notes: tuple[str, ...] = ()
         if prep.contrast > MAX_CONTRAST:
-            frames = ins.motion
-            notes = (*notes, f"c = {prep.contrast:.2f} is beyond the fusion network's sensors "
-                     f"(c ≤ {MAX_CONTRAST}): the motion method's frames")
+            # the network is not run, so neither is TRMD, which only it reads
+            fr = np.arange(2 * self.n + 1) / (2 * self.n)
+            frames = motion_frames(b, events, exposure, fr, prep)[1].frames
+            notes = (f"c = {prep.contrast:.2f} is beyond the fusion network's sensors "
+                     f"(c ≤ {MAX_CONTRAST}): the motion method's frames",)
         else:
+            ins = fusion_inputs(b, events, exposure, self._trmd, self.n, prep)
             planes = fusion_planes(ins.motion, ins.trmd, ins.edi, ins.blurry, ins.weight,
                                    ins.events, self.n)
             with torch.inference_mode():
@@ -625,12 +647,10 @@ def make_method(config: MethodConfig) -> Method:
 def unavailable(config: MethodConfig) -> str | None:
     """Why ``config``'s method cannot run in this installation, or None: it needs weights,
     none are given, and none ship."""
-    if config.method == FusedMethod.name:
-        from .models.fusion import default_fusion_path
-
-        if not default_fusion_path().is_file():
-            return ("this installation ships no fusion weights (weights_recipe/train_fusion.py "
-                    "makes them)")
+    missing = getattr(REGISTRY[config.method], "missing_files", None)
+    why = missing() if missing is not None else None
+    if why:
+        return why
     if not REGISTRY[config.method].needs.weights or config.weights is not None:
         return None
     from .models.weights import default_weights_path

@@ -66,16 +66,13 @@ def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
         contrast: c for EDI's fallback (None = estimated on this frame alone).
         hot_pixels: leave the events of hot pixels out.
     """
-    from .deconv import motion_deblur
     from .edi import check_blurry
-    from .methods import EdiMethod
+    from .methods import EdiMethod, motion_frames
     from .motion import warped_image
 
     b = check_blurry(blurry, events.width, events.height)
     prep = EdiMethod(3, contrast, hot_pixels).prepare(b, events, exposure)
-    mid = prep.model.latent(b, np.array([0.5]), prep.contrast)
-    res = motion_deblur(b, events, exposure, np.array([0.5]), mid, mid[0], prep.hot,
-                       contrast=prep.contrast)
+    _, res = motion_frames(b, events, exposure, np.array([0.5]), prep)
     w, h = events.width, events.height
     ev = events.within(exposure)
     x, y = ev.x.astype(np.float64), ev.y.astype(np.float64)

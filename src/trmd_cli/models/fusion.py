@@ -1,7 +1,7 @@
 """The fusion network: corrects the motion method's frame at one instant from what TRMD, EDI,
 the blurry frame and the events say there (:mod:`trmd_cli.fusion` makes its inputs).
 
-A small U-Net (three scales, 16/32/64 channels, ≈ 0.14 M parameters) over seven planes per
+A small U-Net (three scales, 16/32/64 channels, ≈ 0.12 M parameters) over seven planes per
 instant k: the motion method's frame M(k), TRMD's frame, EDI's frame, B, the guard's weight
 (the deconvolution's share in M(k)), the events' log-intensity change from the middle to k
 (``c·V(k)``, clipped to ±3) and the instant ``(k − N)/N``. It returns ``M(k) + r``: the last
@@ -169,7 +169,7 @@ def is_fusion_file(path: str | Path) -> bool:
 def describe_fusion(path: str | Path) -> dict[str, Any]:
     """What ``trmd info`` says of fusion weights: the network, its file, what it was trained
     on and its held-out figures (JSON values)."""
-    import hashlib
+    from .weights import weights_hash
 
     model, meta = load_fusion(path)
     p = Path(path)
@@ -184,6 +184,6 @@ def describe_fusion(path: str | Path) -> dict[str, Any]:
     return {"weights": "fusion network (--method fused)", "width": model.width,
             "parameters": sum(t.numel() for t in model.parameters()),
             "size_kib": round(p.stat().st_size / 1024, 1),
-            "sha256": hashlib.sha256(p.read_bytes()).hexdigest()[:12],
+            "sha256": weights_hash(p),
             "trained_on": value("trained_on"), "steps": value("steps"),
             "held_out_psnr": value("held_out_psnr")}

@@ -14,8 +14,8 @@ step-4 neighbours of the best three on 4×), then quasi-Newton (BFGS) ascent on 
 gradient of the gain — translation + acceleration from the best three on 4×, with rotation and
 zoom on 2× and at full resolution, then the perspective at full resolution, kept only
 when it sharpens the events by more than :data:`PERSPECTIVE_MIN_GAIN`, then the
-translation's jerk with everything else free, kept on the same terms
-(:data:`JERK_MIN_GAIN`). The gradient is exact for the
+translation's jerk with everything else free, kept only when it sharpens events it was not
+fitted to by more than :data:`JERK_MIN_GAIN`. The gradient is exact for the
 bilinear votes: the image's derivative ``2/n · g ∗ (g ∗ IWE − μ)`` read back at each event by
 the derivative of its bilinear stencil, chained through the closed-form warp.
 """
@@ -55,8 +55,8 @@ class MotionSearch:
             of scale across the view per exposure.
         rotation_zoom: refine rotation, zoom and perspective too (else translation +
             acceleration only).
-        jerk: refine the translation's jerk last (kept when it raises the gain by more than
-            :data:`JERK_MIN_GAIN`).
+        jerk: refine the translation's jerk last (fitted to every other event, kept when it
+            raises the gain of the rest by more than :data:`JERK_MIN_GAIN`).
         max_events: events used per level (a fixed random subset when there are more).
         seed: the subset's generator seed.
         iterations: quasi-Newton steps per refinement, at most.
@@ -435,7 +435,7 @@ def estimate_motion(events: EventStream, exposure: Exposure,
         if fine.gain(q8) > g6 * (1.0 + PERSPECTIVE_MIN_GAIN):
             q = q8
     if search.jerk:
-        # then the jerk, with everything already free, kept on the same terms
+        # then the jerk, with everything already free
         sel = [0, 1, 2, 3] + ([4, 5] if search.rotation_zoom else []) + \
             ([6, 7] if q[6] != 0.0 or q[7] != 0.0 else []) + [8, 9]
         # judged on events it was not fitted to: fitted on every other event, kept only when

@@ -296,14 +296,13 @@ def prepare_windows(groups: Sequence[Sequence[str | Path]], n: int, *, timing: b
 def _deconvolved(blurry, events, exposure, n: int, prep, motion, trusted: bool
                  ) -> tuple[np.ndarray, np.ndarray]:
     """The guarded motion-aware deconvolution at the instants k/2N and its share per frame."""
-    from ..deconv import motion_deblur
+    from ..methods import motion_frames
 
     fr = np.arange(2 * n + 1) / (2 * n)
-    lat = prep.model.latent(blurry, np.append(fr, 0.5), prep.contrast)
     if not trusted:
-        return lat[:-1].astype(np.float32), np.zeros_like(lat[:-1], np.float32)
-    res = motion_deblur(blurry, events, exposure, fr, lat[:-1], lat[-1], prep.hot,
-                        motion=motion, contrast=prep.contrast)
+        lat = prep.model.latent(blurry, np.append(fr, 0.5), prep.contrast)[:-1]
+        return lat.astype(np.float32), np.zeros_like(lat, np.float32)
+    _, res = motion_frames(blurry, events, exposure, fr, prep, motion)
     weight = np.zeros_like(res.frames, np.float32) if res.weights is None else res.weights
     return res.frames.astype(np.float32), weight.astype(np.float32)
 
