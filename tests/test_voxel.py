@@ -159,3 +159,23 @@ def test_levels_interpolate_between_events_by_hand():
     lv = scer_levels(ev, Exposure(0, 600), n=1)
     np.testing.assert_allclose(lv[:, 0, 0], [0.5 - (1 + 2 / 3), 2 - (1 + 2 / 3)], rtol=1e-6)
     np.testing.assert_array_equal(lv[:, 0, 1], [0, 0])
+
+
+def test_spread_bins_puts_each_count_evenly_inside_its_bin_and_bins_back_exactly():
+    from trmd_cli.voxel import spread_bins
+
+    bins = np.zeros((3, 2, 2), np.int16)
+    bins[1, 0, 1] = -4  # four OFF events in the middle bin of pixel (x=1, y=0)
+    bins[2, 1, 0] = 1
+    events, exposure = spread_bins(bins, bin_us=1000)
+    assert (exposure.start_us, exposure.end_us) == (0, 3000)
+    # by hand: (j + ½)/k of the bin, j = 0..3 of k = 4 → 1125, 1375, 1625, 1875; k = 1 → 2500
+    assert events.t.tolist() == [1125, 1375, 1625, 1875, 2500]
+    assert events.p.tolist() == [-1, -1, -1, -1, 1]
+    assert events.x.tolist() == [1, 1, 1, 1, 0] and events.y.tolist() == [0, 0, 0, 0, 1]
+    rng = np.random.default_rng(3)
+    many = rng.integers(-6, 7, (18, 9, 11)).astype(np.int16)
+    ev, ex = spread_bins(many)
+    np.testing.assert_array_equal(event_bins(ev, ex, 18), many)
+    with pytest.raises(InputError, match="whole numbers"):
+        spread_bins(many.astype(np.float32) + 0.5)

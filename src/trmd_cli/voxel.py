@@ -19,7 +19,8 @@ from .edi import PixelEvents, cumsum_rows
 from .errors import InputError, check_shape
 from .events import EventStream, Exposure
 
-__all__ = ["event_bins", "scer_from_bins", "bins_from_scer", "resample_bins", "scer_levels",
+__all__ = ["event_bins", "scer_from_bins", "bins_from_scer", "resample_bins", "spread_bins",
+           "scer_levels",
            "scer_voxels", "scer_voxels_torch", "voxel_instants"]
 
 
@@ -130,6 +131,36 @@ def resample_bins(bins: np.ndarray, num_bins: int) -> np.ndarray:
                       - np.maximum(i * m, j * num_bins), 0, None)
     weights = overlap / num_bins  # the share of old bin j that falls in new bin i
     return np.tensordot(weights, b.astype(np.float64), axes=(1, 0)).astype(np.float32)
+
+
+def spread_bins(bins: np.ndarray, bin_us: int = 10_000) -> tuple[EventStream, Exposure]:
+    """Events standing in for signed bin counts (M, H, W): a count k of a pixel's bin becomes
+    |k| events of its sign spread evenly over the bin, on a nominal clock of ``bin_us`` µs per
+    bin starting at 0 — what EDI on binned data assumes of them.
+
+    For what needs event times (contrast maximisation, the motion-aware deconvolution) on
+    data that has none; the times are a model, never written out as the recording's. The
+    bins come back exactly: ``event_bins(events, exposure, M)`` equals ``bins``.
+    Returns:
+        the events (width, height from the bins) and their exposure ``[0, M · bin_us]``.
+    """
+    check_shape(bins, (None, None, None), "bins")
+    counts = np.asarray(bins)
+    if not np.all(np.isfinite(counts)) or np.any(counts != np.round(counts)):
+        raise InputError("bin counts must be whole numbers", hint="give signed event counts")
+    m, h, w = counts.shape
+    ib = np.rint(counts).astype(np.int64)
+    b, y, x = np.nonzero(ib)
+    k = np.abs(ib[b, y, x])
+    reps = np.repeat(np.arange(len(k)), k)
+    # j-th of k events of a bin at (j + ½)/k of it: evenly spread, strictly inside
+    j = np.arange(len(reps)) - np.repeat(np.cumsum(k) - k, k)
+    t = b[reps] * bin_us + ((2 * j + 1) * bin_us) // (2 * k[reps])
+    order = np.argsort(t, kind="stable")
+    events = EventStream(x[reps][order].astype(np.uint16), y[reps][order].astype(np.uint16),
+                         t[order].astype(np.int64),
+                         np.sign(ib[b, y, x])[reps][order].astype(np.int8), w, h)
+    return events, Exposure(0, m * bin_us)
 
 
 def scer_voxels(events: EventStream, exposure: Exposure, n: int = 3, *,

@@ -178,6 +178,49 @@ def test_batches_have_the_shapes_the_losses_read_and_untrusted_motion_is_masked(
     assert float(window_batch(windows[0], 48)["reblur_mask"].sum()) > 0
 
 
+def test_where_the_guard_fell_back_no_motion_term_teaches():
+    from dataclasses import replace
+
+    weight = np.ones((7, 30, 50), np.float32)
+    weight[:, :, 25:] = 0.0  # an object moving on its own in the right half
+    weight[6, :10, :] = 0.0  # and the last instant's top rows
+    win = replace(_window(0), deconv=np.zeros((7, 30, 50), np.float32), deconv_weight=weight)
+    plain = window_batch(_window(0), 48)
+    b = window_batch(win, 48)
+    assert float(plain["reblur_mask"][..., 25:].sum()) > 0
+    assert float(b["reblur_mask"][..., 25:].sum()) == 0
+    assert float(b["warp_mask"][..., 25:].sum()) == 0
+    assert float(b["warp_mask"][0, 6, :, :10].sum()) == 0
+    assert float(b["warp_mask"][0, 5, :, :10].sum()) > 0
+    torch.testing.assert_close(b["reblur_mask"][..., :25], plain["reblur_mask"][..., :25])
+
+
+def test_the_oracle_learns_from_the_sharp_frames_and_is_off_without_them():
+    from dataclasses import replace
+
+    from trmd_cli.models.weights import load_weights
+    from trmd_cli.train.finetune import held_out_losses, tune
+
+    with pytest.raises(InputError, match="needs sharp frames"):
+        FinetuneConfig(losses={"sequence": 1.0})
+    cfg = FinetuneConfig(losses={"sequence": 1.0}, oracle=True, steps=15, crop=32,
+                         batch_size=2, lr=1e-3, anchor=0.0)
+    rng = np.random.default_rng(5)
+    # a flat frame with one bright square: the true frames are known, the network's are not
+    sharp = np.full((7, 32, 48), 0.3, np.float32)
+    sharp[:, 8:20, 12:30] = 0.8
+    win = replace(_window(3, 32, 48), blurry=sharp[3].copy(), sharp=sharp,
+                  voxels=rng.integers(-1, 2, (6, 32, 48)).astype(np.float32))
+    assert window_batch(win, 48)["sharp"].shape == (1, 7, 1, 32, 48)
+    model, _ = load_weights(None, device="cpu")
+    before = held_out_losses(model, [win], cfg)["sequence"]
+    tune(model, [win], cfg)
+    after = held_out_losses(model, [win], cfg)["sequence"]
+    assert after < 0.7 * before, (before, after)
+    with pytest.raises(InputError, match="sharp frames"):
+        held_out_losses(model, [_window(4, 32, 48)], cfg)
+
+
 # --- the command ------------------------------------------------------------------------------
 
 W, H = 96, 72
@@ -238,6 +281,20 @@ def test_finetune_writes_weights_that_the_other_commands_take(tuned, sim, tmp_pa
     assert len(list((tmp_path / "d").glob("*/frame_*.png"))) == 4 * 7
 
 
+def test_a_log_gets_training_progress_lines(tuned):
+    _, r = tuned  # stderr is not a terminal under the runner, as in `… > log 2>&1`
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("fine-tuning step")]
+    assert [ln.split(":")[0] for ln in lines] == ["fine-tuning step 1/2", "fine-tuning step 2/2"]
+
+
+@pytest.mark.parametrize("total, expected", [(2, [1, 2]), (30, [1, 3, 6, 9, 12, 15, 18, 21,
+                                                                  24, 27, 30])])
+def test_plain_progress_marks_the_first_every_tenth_and_the_last_step(total, expected):
+    from trmd_cli.cli.finetune import plain_line
+
+    assert [k for k in range(1, total + 1) if plain_line(k, total)] == expected
+
+
 def test_finetune_with_zero_steps_gives_back_the_starting_network(sim, tmp_path):
     from trmd_cli.models.weights import load_weights
 
@@ -250,6 +307,19 @@ def test_finetune_with_zero_steps_gives_back_the_starting_network(sim, tmp_path)
     for (name, p), q in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
         # saved as float16, as the shipped file is
         assert torch.equal(p, q), name
+
+
+def test_without_a_motion_to_learn_from_it_stops_before_training(sim):
+    from trmd_cli.train.finetune import finetune
+
+    # a contrast gain no motion reaches: every window untrusted
+    with pytest.raises(InputError, match="nothing to fine-tune on"):
+        finetune([sim], config=FinetuneConfig(min_confidence=1e6, steps=1, crop=32))
+    result, notes = finetune([sim], config=FinetuneConfig(
+        min_confidence=1e6, steps=1, crop=32, batch_size=1,
+        losses={"reblur": 1.0, "event_consistency": 0.1}), threads=1)
+    assert result.trusted == 0
+    assert any("only event_consistency train" in n for n in notes), notes
 
 
 @pytest.mark.parametrize("args, names, needle", [
@@ -291,17 +361,49 @@ def test_several_recordings_train_together(sim, tmp_path):
     assert info["windows"] + info["held_out"] == 8
 
 
-def test_binned_events_are_refused_in_one_line(tmp_path):
+def test_binned_events_train_with_the_motion_of_their_bins(tmp_path):
+    """A camera shake binned 18 per exposure (no event times, as LEDVDI ships its data): the
+    network's inputs are what `deblur` gives it on bins, the motion comes from the bins and
+    agrees with the one the raw events give."""
     from tests.helpers.bins import write_binned_set
+    from trmd_cli.edi import PixelEvents
+    from trmd_cli.methods import EdiMethod
+    from trmd_cli.motion.cmax import estimate_motion
+    from trmd_cli.read.base import Frame
+    from trmd_cli.train.finetune import _binned_window
+    from trmd_cli.voxel import event_bins, scer_from_bins
 
-    rng = np.random.default_rng(0)
-    frames = [type("F", (), {"blurry": rng.random((24, 32), dtype=np.float32),
-                             "bins": rng.integers(-2, 3, (6, 24, 32)).astype(np.int16)})()]
+    seq = make_sequence(texture(200, 260, seed=4), n=3, size=(W, H), exposure_us=20_000,
+                        frames=2, rng=np.random.default_rng(2),
+                        sensor=SensorConfig.clean(0.3, eps=0.001),
+                        motion=MotionRanges(translation_px=12, rotation_deg=0, scale=0.0,
+                                            perspective=0.0))
+    frames = [type("F", (), {"blurry": seq.blurry[k], "bins": event_bins(
+        seq.events, e, 18, window=PixelEvents.build(seq.events, e)).astype(np.int16)})()
+        for k, e in enumerate(seq.exposures)]
+    cfg = FinetuneConfig()
+    win = _binned_window(frames[0].bins, Frame(seq.blurry[0], None, 0, "f0"), 3,
+                         EdiMethod(3, None), cfg)
+    np.testing.assert_array_equal(win.voxels, scer_from_bins(
+        frames[0].bins.reshape(6, 3, H, W).sum(1).astype(np.float32)))
+    assert win.levels is None and win.trusted
+    raw = estimate_motion(seq.events, seq.exposures[0], None)
+    ys, xs = np.mgrid[0:H:8, 0:W:8].astype(np.float64)
+    for u in (0.0, 1.0):
+        a = np.stack(win.motion.to_middle(np.array(u), xs, ys))
+        b = np.stack(raw.to_middle(np.array(u), xs, ys))
+        epe = np.hypot(*(a - b)).mean()  # 12 px of shake over the exposure
+        assert epe < 0.75, (u, epe)
+
     images, bins = write_binned_set(tmp_path / "set", frames, fmt="npz")
     out = tmp_path / "w.safetensors"
-    r = runner.invoke(app, ["finetune", str(images), str(bins), "-o", str(out), "--steps", "1"])
-    assert_one_error_line(r, images.name, "no event times")
-    assert not out.exists()
+    r = runner.invoke(app, ["finetune", str(images), str(bins), "-o", str(out), "--steps", "1",
+                            "--crop", "32", "--batch-size", "1", "--threads", "1"])
+    assert r.exit_code == 0, r.output
+    assert "spread evenly over each bin" in r.stderr
+    d = runner.invoke(app, ["deblur", str(images), str(bins), "-o", str(tmp_path / "d"),
+                            "--weights", str(out), "--threads", "1"])
+    assert d.exit_code == 0, d.output
 
 
 def test_only_the_named_parts_change(sim, tmp_path):

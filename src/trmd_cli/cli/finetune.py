@@ -51,6 +51,13 @@ def parse_losses(items: list[str]) -> dict[str, float]:
     return out
 
 
+def plain_line(done: int, total: int) -> bool:
+    """Whether step ``done`` of ``total`` gets a line in a log: the first, every tenth, the
+    last."""
+    every = max(1, total // 10)
+    return done == 1 or done == total or done % every == 0
+
+
 def picture_path(output: Path) -> Path:
     """Where the before/after picture of a run writing ``output`` goes."""
     return output.with_suffix(".png")
@@ -145,8 +152,17 @@ def finetune(
                   TimeElapsedColumn(), TimeRemainingColumn(), console=err,
                   disable=not progress_enabled(), transient=True) as bar:
         tasks: dict[str, int] = {}
+        plain = not progress_enabled()
 
         def progress(phase: str, done: int, total: int, figures: dict[str, float]) -> None:
+            if plain:
+                # a log file gets a line per tenth of the training: minutes of silence read as
+                # a hang. Reading windows stays quiet: a bad input there still gets one line.
+                if phase == "train" and plain_line(done, total):
+                    err.print(f"fine-tuning step {done}/{total}: loss {figures['loss']:.4g} "
+                              f"({time.monotonic() - started:.0f} s)", highlight=False,
+                              markup=False, soft_wrap=True)
+                return
             if phase not in tasks:
                 label = "reading windows" if phase == "windows" else "fine-tuning"
                 tasks[phase] = bar.add_task(label, total=total, stats="")

@@ -20,8 +20,10 @@ What does carry a signal:
   the simulated training taught.
 
 Windows whose events show no reliable motion (the contrast gain of the warped events below
-``min_confidence``) have their motion terms masked out: only the event term, when it is on,
-learns from them. Part of the windows is held out: the losses on
+``min_confidence``) have their motion terms masked out, and so has every pixel where the
+deconvolution's guard fell back to EDI (re-blurring along the motion did not give the blurry
+frame back there: the motion is wrong, e.g. an object moving on its own): only the event
+term, when it is on, learns from them. Part of the windows is held out: the losses on
 them, before and after, say whether the fine-tuning helped on frames it never trained on.
 
 The pieces: :func:`prepare_windows` (read → window → voxels, c and motion, one window at a
@@ -35,7 +37,7 @@ import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +81,10 @@ class FinetuneConfig:
         seed: crops and window order.
         trainable: names of the network's top-level parts that train (e.g. ``("refine",
             "head")``); empty = all of them. Fewer parameters fit a few windows less closely.
+        oracle: allow the supervised losses (``sequence``, ``middle``, ``residual``), for
+            experiments on simulated windows that carry their sharp frames
+            (:attr:`Window.sharp`): what ground truth would teach in the same run, the
+            ceiling of the losses that need none. ``trmd finetune`` never sets it.
     """
 
     steps: int = 300
@@ -98,6 +104,7 @@ class FinetuneConfig:
     log_eps: float = 1e-2
     seed: int = 0
     trainable: tuple[str, ...] = ()
+    oracle: bool = False
 
     def __post_init__(self) -> None:
         from .losses import LOSSES, SUPERVISED
@@ -118,7 +125,7 @@ class FinetuneConfig:
             if name not in LOSSES:
                 raise InputError(f"unknown loss {name!r}",
                                  hint=f"known: {', '.join(sorted(set(LOSSES) - SUPERVISED))}")
-            if name in SUPERVISED:
+            if name in SUPERVISED and not self.oracle:
                 raise InputError(f"loss {name!r} needs sharp frames, which fine-tuning has not",
                                  hint="use reblur, warp, deconv, event_consistency or "
                                  "blur_consistency")
@@ -144,12 +151,17 @@ class Window:
         voxels: (2N, H, W) SCER voxels; levels: their sub-bin timing, or None.
         contrast: c, log intensity per event (given or estimated).
         motion: the exposure's global motion (pixels, exposure fractions).
-        trusted: the motion is reliable enough for the motion losses.
+        trusted: the motion is reliable enough for the motion losses (the warped events'
+            contrast gain, and the guard kept some of the deconvolution along it).
         deconv: (2N+1, H, W) the motion-aware deconvolution at the network's instants
             (:func:`trmd_cli.deconv.motion_deblur`), for the ``deconv`` loss; None when the
             run does not use it.
         deconv_weight: (2N+1, H, W) [0, 1], the deconvolution's share of each of those frames
-            (0 where its guard fell back to EDI).
+            (0 where its guard fell back to EDI); it also masks the re-blur (middle frame's)
+            and warp (frame k's) terms: where re-blurring along the motion does not explain
+            the blurry frame, that motion teaches nothing.
+        sharp: (2N+1, H, W) [0, 1] the true frames of a simulated window, for oracle
+            experiments only (:attr:`FinetuneConfig.oracle`); None from :func:`prepare_windows`.
     """
 
     name: str
@@ -161,6 +173,7 @@ class Window:
     trusted: bool
     deconv: np.ndarray | None = None
     deconv_weight: np.ndarray | None = None
+    sharp: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -228,15 +241,12 @@ def prepare_windows(groups: Sequence[Sequence[str | Path]], n: int, *, timing: b
         on_window: called with (done, total) after each window, for progress.
     Returns:
         the windows and the notes the user should hear (readers' warnings, skipped frames).
+    Binned events (no event times) get their motion from events spread evenly over each bin.
     Raises:
-        InputError: no input frame has events in its exposure; binned events (no event times,
-            hence no motion).
+        InputError: no input frame has events in its exposure.
     """
-    from ..edi import check_blurry
     from ..methods import EdiMethod
-    from ..motion.cmax import estimate_motion
     from ..read.inputs import open_inputs
-    from ..voxel import scer_levels, scer_voxels
 
     notes: list[str] = []
     edi = EdiMethod(n, config.contrast, config.hot_pixels)
@@ -249,11 +259,11 @@ def prepare_windows(groups: Sequence[Sequence[str | Path]], n: int, *, timing: b
         for paths in groups:
             ins = stack.enter_context(open_inputs(list(paths), read_options, exposure=exposure,
                                                   offset_us=offset_us))
-            if ins.binned:
-                raise InputError("binned events have no event times to estimate the motion "
-                                 "from", path=paths[0], hint="fine-tune on events with times")
             opened.append((Path(paths[0]).name, ins))
             notes.extend(ins.warnings)
+            if ins.binned:
+                notes.append(f"{Path(paths[0]).name}: binned events have no event times; the "
+                             "motion is estimated from events spread evenly over each bin")
         total = sum(len(ins.source) for _, ins in opened)
         # evenly over all frames of all inputs, at most max_windows
         take = set(np.unique(np.linspace(0, total - 1, min(total, config.max_windows))
@@ -263,24 +273,15 @@ def prepare_windows(groups: Sequence[Sequence[str | Path]], n: int, *, timing: b
             for i, item in enumerate(ins.source):
                 if seen + i not in take:
                     continue
-                frame, events = item.frame, item.events
-                span = frame.exposure
-                if len(events.within(span)) == 0:
+                frame = item.frame
+                if ins.binned:
+                    win = _binned_window(item.bins, frame, n, edi, config)
+                else:
+                    win = _event_window(item.events, frame, n, timing, edi, config)
+                if win is None:
                     skipped += 1
                     continue
-                b = _luma(np.clip(check_blurry(frame.image, events.width, events.height,
-                                               frame.name), 0.0, 1.0))
-                prep = edi.prepare(b, events, span)
-                motion = estimate_motion(events, span, prep.hot)
-                trusted = bool(motion.confidence >= config.min_confidence)
-                teacher = _deconvolved(b, events, span, n, prep, motion, trusted) \
-                    if config.losses.get("deconv", 0) > 0 else (None, None)
-                # the per-pixel sort c was settled with serves the voxels and levels too
-                windows.append(Window(
-                    f"{source_name}:{frame.name}", b.astype(np.float32),
-                    scer_voxels(events, span, n, window=prep.window),
-                    scer_levels(events, span, n, window=prep.window) if timing else None,
-                    float(prep.contrast), motion, trusted, *teacher))
+                windows.append(replace(win, name=f"{source_name}:{frame.name}"))
                 if on_window is not None:
                     on_window(len(windows) + skipped, len(take))
             seen += len(ins.source)
@@ -291,6 +292,75 @@ def prepare_windows(groups: Sequence[Sequence[str | Path]], n: int, *, timing: b
                          path=groups[0][0] if groups and groups[0] else None,
                          hint="check the exposure windows and the time offset")
     return windows, notes
+
+
+def _event_window(events, frame, n: int, timing: bool, edi, config: FinetuneConfig
+                  ) -> Window | None:
+    """A window of events with times (None: no event in the exposure)."""
+    from ..edi import check_blurry
+    from ..motion.cmax import estimate_motion
+    from ..voxel import scer_levels, scer_voxels
+
+    span = frame.exposure
+    if len(events.within(span)) == 0:
+        return None
+    b = _luma(np.clip(check_blurry(frame.image, events.width, events.height, frame.name),
+                      0.0, 1.0))
+    prep = edi.prepare(b, events, span)
+    motion = estimate_motion(events, span, prep.hot)
+    trusted = bool(motion.confidence >= config.min_confidence)
+    teacher = _deconvolved(b, events, span, n, prep, motion, trusted) \
+        if _guarded(config) else (None, None)
+    trusted = trusted and _explains(teacher[1])
+    # the per-pixel sort c was settled with serves the voxels and levels too
+    return Window(frame.name, b.astype(np.float32),
+                  scer_voxels(events, span, n, window=prep.window),
+                  scer_levels(events, span, n, window=prep.window) if timing else None,
+                  float(prep.contrast), motion, trusted, *teacher)
+
+
+def _binned_window(bins: np.ndarray, frame, n: int, edi, config: FinetuneConfig
+                   ) -> Window | None:
+    """A window of binned events: the network's inputs and c as ``TrmdMethod.from_bins``
+    gives them in use (voxels from the counts, the counts as timing levels), the motion and
+    the deconvolution from events spread evenly over each bin (:func:`~trmd_cli.voxel.
+    spread_bins`). None: no event in the bins."""
+    from ..edi import check_blurry
+    from ..methods import EdiMethod
+    from ..motion.cmax import estimate_motion
+    from ..voxel import resample_bins, scer_from_bins, spread_bins
+
+    counts = np.asarray(bins, np.float32)
+    if not np.any(counts):
+        return None
+    height, width = counts.shape[1:]
+    b = _luma(np.clip(check_blurry(frame.image, width, height, frame.name), 0.0, 1.0))
+    c = float(edi.prepare(b, counts).contrast)
+    events, span = spread_bins(counts)
+    # binned EDI has no hot-pixel mask (no per-event information to judge by): nor here
+    prep = EdiMethod(n, c, hot_pixels=False).prepare(b, events, span)
+    motion = estimate_motion(events, span, prep.hot)
+    trusted = bool(motion.confidence >= config.min_confidence)
+    teacher = _deconvolved(b, events, span, n, prep, motion, trusted) \
+        if _guarded(config) else (None, None)
+    trusted = trusted and _explains(teacher[1])
+    two_n = 2 * n
+    voxels = scer_from_bins(counts if counts.shape[0] == two_n else
+                            resample_bins(counts, two_n))
+    return Window(frame.name, b.astype(np.float32), np.asarray(voxels, np.float32), None, c,
+                  motion, trusted, *teacher)
+
+
+def _explains(weight: np.ndarray | None) -> bool:
+    """The guard kept some of the deconvolution (re-blurring along the motion explains the
+    blurry frame somewhere): else the motion is not the exposure's, whatever its contrast."""
+    return weight is None or float(weight.mean()) >= 0.01
+
+
+def _guarded(config: FinetuneConfig) -> bool:
+    """The run uses a motion term: it needs the guarded deconvolution (its frames for
+    ``deconv``, its guard for every motion term)."""
+    return any(config.losses.get(k, 0) > 0 for k in ("reblur", "warp", "deconv"))
 
 
 def _deconvolved(blurry, events, exposure, n: int, prep, motion, trusted: bool
@@ -355,15 +425,25 @@ def _window_tensors(win: Window, box: tuple[int, int, int, int], j: int) -> dict
     rg, rin = motion_grid(win.motion, fr, box)
     wg, win_in = motion_grid(win.motion, np.arange(2 * n + 1) / (2 * n), box)
     trust = 1.0 if win.trusted else 0.0
+    reblur_mask = (rin.all(0) * trust)[None]
+    warp_mask = (win_in * trust)[:, None]
+    if win.deconv_weight is not None:
+        # where re-blurring along the motion does not give the blurry frame back (the guard
+        # fell back to EDI) the motion is wrong there: it must not teach through any term
+        guard = win.deconv_weight[:, None, sl[0], sl[1]]
+        reblur_mask = reblur_mask * guard[n]
+        warp_mask = warp_mask * guard
     out = {"blurry": win.blurry[sl][None], "voxels": win.voxels[:, sl[0], sl[1]],
            "contrast": np.float32(win.contrast),
-           "reblur_grid": rg, "reblur_mask": (rin.all(0) * trust)[None].astype(np.float32),
-           "warp_grid": wg, "warp_mask": (win_in * trust)[:, None].astype(np.float32)}
+           "reblur_grid": rg, "reblur_mask": reblur_mask.astype(np.float32),
+           "warp_grid": wg, "warp_mask": warp_mask.astype(np.float32)}
     if win.levels is not None:
         out["levels"] = win.levels[:, sl[0], sl[1]]
     if win.deconv is not None and win.deconv_weight is not None:
         out["deconv"] = win.deconv[:, None, sl[0], sl[1]]
         out["deconv_mask"] = win.deconv_weight[:, None, sl[0], sl[1]]
+    if win.sharp is not None:
+        out["sharp"] = win.sharp[:, None, sl[0], sl[1]]
     return out
 
 
@@ -541,11 +621,17 @@ def finetune(inputs: Sequence[str | Path], *, weights: str | Path | None = None,
     trusted = sum(w.trusted for w in train)
     motion_terms = ("reblur", "warp", "deconv")
     if trusted == 0 and any(config.losses.get(k, 0) > 0 for k in motion_terms):
-        rest = "only the event term trains" if config.losses.get("event_consistency", 0) > 0 \
-            else "nothing but the pull towards the starting weights trains (turn on " \
-            "`event_consistency`, or give recordings with camera motion)"
-        notes.append("no training window showed a reliable motion (contrast gain ≥ "
-                     f"{config.min_confidence:g}): {rest}")
+        why = (f"no training window shows a reliable motion (contrast gain ≥ "
+               f"{config.min_confidence:g}, and re-blurring along it explains the blurry frame "
+               "somewhere)")
+        others = [k for k, w in config.losses.items() if w > 0 and k not in motion_terms]
+        if not others:
+            # minutes of steps that move no weight would end in the starting weights
+            raise InputError(f"nothing to fine-tune on: {why}",
+                             path=groups[0][0] if groups and groups[0] else None,
+                             hint="give recordings where the camera moves over a still scene, "
+                             "or turn on --loss event_consistency=…")
+        notes.append(f"{why}: only {', '.join(others)} train")
 
     model.eval()
     before = held_out_losses(model, held, config) if held else {}
