@@ -20,8 +20,7 @@ from .errors import InputError, check_shape
 from .events import EventStream, Exposure
 
 __all__ = ["event_bins", "scer_from_bins", "bins_from_scer", "resample_bins", "spread_bins",
-           "scer_levels",
-           "scer_voxels", "scer_voxels_torch", "voxel_instants"]
+           "scer_levels", "scer_voxels", "scer_voxels_torch", "voxel_instants"]
 
 
 def event_bins(events: EventStream, exposure: Exposure, num_bins: int, *,

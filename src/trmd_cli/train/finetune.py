@@ -52,6 +52,8 @@ __all__ = ["FinetuneConfig", "Window", "FinetuneResult", "DEFAULT_LOSSES", "inpu
            "prepare_windows", "split_windows", "motion_grid", "crop_batch", "window_batch",
            "held_out_losses", "finetune"]
 
+#: the losses that read the exposure's motion (masked where it is not trusted)
+MOTION_TERMS = ("reblur", "warp", "deconv")
 #: loss weights of a fine-tuning run (registered losses, :mod:`.losses`)
 DEFAULT_LOSSES: Mapping[str, float] = {"reblur": 1.0, "warp": 0.25, "deconv": 1.0,
                                        "event_consistency": 0.0}
@@ -298,7 +300,6 @@ def _event_window(events, frame, n: int, timing: bool, edi, config: FinetuneConf
                   ) -> Window | None:
     """A window of events with times (None: no event in the exposure)."""
     from ..edi import check_blurry
-    from ..motion.cmax import estimate_motion
     from ..voxel import scer_levels, scer_voxels
 
     span = frame.exposure
@@ -307,11 +308,7 @@ def _event_window(events, frame, n: int, timing: bool, edi, config: FinetuneConf
     b = _luma(np.clip(check_blurry(frame.image, events.width, events.height, frame.name),
                       0.0, 1.0))
     prep = edi.prepare(b, events, span)
-    motion = estimate_motion(events, span, prep.hot)
-    trusted = bool(motion.confidence >= config.min_confidence)
-    teacher = _deconvolved(b, events, span, n, prep, motion, trusted) \
-        if _guarded(config) else (None, None)
-    trusted = trusted and _explains(teacher[1])
+    motion, trusted, teacher = _motion_and_teacher(b, events, span, n, prep, config)
     # the per-pixel sort c was settled with serves the voxels and levels too
     return Window(frame.name, b.astype(np.float32),
                   scer_voxels(events, span, n, window=prep.window),
@@ -327,7 +324,6 @@ def _binned_window(bins: np.ndarray, frame, n: int, edi, config: FinetuneConfig
     spread_bins`). None: no event in the bins."""
     from ..edi import check_blurry
     from ..methods import EdiMethod
-    from ..motion.cmax import estimate_motion
     from ..voxel import resample_bins, scer_from_bins, spread_bins
 
     counts = np.asarray(bins, np.float32)
@@ -339,11 +335,7 @@ def _binned_window(bins: np.ndarray, frame, n: int, edi, config: FinetuneConfig
     events, span = spread_bins(counts)
     # binned EDI has no hot-pixel mask (no per-event information to judge by): nor here
     prep = EdiMethod(n, c, hot_pixels=False).prepare(b, events, span)
-    motion = estimate_motion(events, span, prep.hot)
-    trusted = bool(motion.confidence >= config.min_confidence)
-    teacher = _deconvolved(b, events, span, n, prep, motion, trusted) \
-        if _guarded(config) else (None, None)
-    trusted = trusted and _explains(teacher[1])
+    motion, trusted, teacher = _motion_and_teacher(b, events, span, n, prep, config)
     two_n = 2 * n
     voxels = scer_from_bins(counts if counts.shape[0] == two_n else
                             resample_bins(counts, two_n))
@@ -351,16 +343,20 @@ def _binned_window(bins: np.ndarray, frame, n: int, edi, config: FinetuneConfig
                   motion, trusted, *teacher)
 
 
-def _explains(weight: np.ndarray | None) -> bool:
-    """The guard kept some of the deconvolution (re-blurring along the motion explains the
-    blurry frame somewhere): else the motion is not the exposure's, whatever its contrast."""
-    return weight is None or float(weight.mean()) >= 0.01
+def _motion_and_teacher(blurry, events, exposure, n: int, prep, config: FinetuneConfig
+                        ) -> tuple[GlobalMotion, bool, tuple[Any, Any]]:
+    """The exposure's motion, whether it may teach, and the guarded deconvolution along it
+    ((None, None) when no motion term is on). A motion the events show (contrast gain ≥
+    ``min_confidence``) still teaches nothing when the guard kept none of the deconvolution:
+    re-blurring along it explains the blurry frame nowhere."""
+    from ..motion.cmax import estimate_motion
 
-
-def _guarded(config: FinetuneConfig) -> bool:
-    """The run uses a motion term: it needs the guarded deconvolution (its frames for
-    ``deconv``, its guard for every motion term)."""
-    return any(config.losses.get(k, 0) > 0 for k in ("reblur", "warp", "deconv"))
+    motion = estimate_motion(events, exposure, prep.hot)
+    trusted = bool(motion.confidence >= config.min_confidence)
+    if not any(config.losses.get(k, 0) > 0 for k in MOTION_TERMS):
+        return motion, trusted, (None, None)
+    teacher = _deconvolved(blurry, events, exposure, n, prep, motion, trusted)
+    return motion, trusted and float(teacher[1].mean()) >= 0.01, teacher
 
 
 def _deconvolved(blurry, events, exposure, n: int, prep, motion, trusted: bool
@@ -619,12 +615,11 @@ def finetune(inputs: Sequence[str | Path], *, weights: str | Path | None = None,
                                      on_window=lambda d, t: say("windows", d, t, {}))
     train, held = split_windows(windows, config.holdout)
     trusted = sum(w.trusted for w in train)
-    motion_terms = ("reblur", "warp", "deconv")
-    if trusted == 0 and any(config.losses.get(k, 0) > 0 for k in motion_terms):
+    if trusted == 0 and any(config.losses.get(k, 0) > 0 for k in MOTION_TERMS):
         why = (f"no training window shows a reliable motion (contrast gain ≥ "
                f"{config.min_confidence:g}, and re-blurring along it explains the blurry frame "
                "somewhere)")
-        others = [k for k, w in config.losses.items() if w > 0 and k not in motion_terms]
+        others = [k for k, w in config.losses.items() if w > 0 and k not in MOTION_TERMS]
         if not others:
             # minutes of steps that move no weight would end in the starting weights
             raise InputError(f"nothing to fine-tune on: {why}",
