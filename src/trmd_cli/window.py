@@ -103,7 +103,7 @@ def resolve_windows(
             time range; every stored window lies outside it.
     """
     path = getattr(recording, "path", None)
-    if recording.num_events() == 0:
+    if recording.is_empty():
         raise InputError("the recording holds no events", path=path,
                          hint="check the file (trmd info)")
     trange = recording.time_range_us()

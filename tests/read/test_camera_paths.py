@@ -17,7 +17,7 @@ from tests.helpers.data import SHARED, assert_events, needs_shared
 from tests.read.test_camera import write_dat
 from trmd_cli.errors import FormatError
 from trmd_cli.events import Exposure
-from trmd_cli.read import ReadOptions, open_events, prophesee
+from trmd_cli.read import ReadOptions, evt3_words, open_events, prophesee
 from trmd_cli.read import chunked as chunked_mod
 from trmd_cli.read.chunked import time_slice
 from trmd_cli.read.prophesee import DatRecording, Evt3Recording, decode_dat_records
@@ -182,7 +182,7 @@ def test_evt3_undefined_words_found_across_scan_blocks(tmp_path, monkeypatch):
     pytest.importorskip("evt3")
     import struct
 
-    monkeypatch.setattr(prophesee, "_EVT3_SCAN_WORDS", 3)
+    monkeypatch.setattr(evt3_words, "SCAN_WORDS", 3)
     words = [0x8000, 0x6010, 0x0005, 0x2803, 0x9123, 0xC000, 0x6020, 0x0007, 0x2004, 0xD001]
     f = tmp_path / "odd.raw"
     f.write_bytes(b"% evt 3.0\n% geometry 64x48\n% end\n" + struct.pack(f"<{len(words)}H",

@@ -87,6 +87,10 @@ class Recording(ABC):
     @abstractmethod
     def num_events(self) -> int: ...
 
+    def is_empty(self) -> bool:
+        """Whether the recording holds no event (cheaper than counting them for some)."""
+        return self.num_events() == 0
+
     @abstractmethod
     def time_range_us(self) -> tuple[int, int]:
         """(first, last) event time in µs; (0, 0) when there are no events."""

@@ -15,7 +15,10 @@ first and last time and its event count. Afterwards
   small recordings cost one decode whatever is asked of them.
 
 A reader may index a chunk without decoding it (:class:`ChunkSummary`) when it can check the
-chunk on its raw bytes for less than a decoding costs (.dat).
+chunk on its raw bytes for less than a decoding costs (.dat). A reader may also index bounds on
+its chunks' times instead of the times (``_exact = False``, large EVT 3.0 files): it then
+builds the index itself, checks each chunk as it decodes it, and windows slice every chunk they
+touch.
 """
 
 from __future__ import annotations
@@ -240,6 +243,10 @@ class ChunkedRecording(Recording):
             return ev.take(time_slice(ev.t, lo, hi))
         return self._window(self._fetch(int(sel[0]), int(sel[-1])), lo, hi)
 
+    #: whether the index holds each chunk's first and last event times (else bounds on them:
+    #: every event of chunk k lies in ``[_first[k], _last[k]]``, chunks in time order)
+    _exact = True
+
     #: spans of more than two chunks are decoded into one set of arrays (:meth:`_gather`)
     #: instead of joining chunks held together; readers whose chunks have the dtypes of
     #: :class:`Chunk` set it
@@ -390,9 +397,15 @@ class ChunkedRecording(Recording):
                     yield (EventStream(c.x[i0:i1], c.y[i0:i1], c.t[i0:i1], c.p[i0:i1], width,
                                        height) if i1 > i0 else EventStream.empty(width, height))
                     continue
-                cuts = [(held[a], slice(i0, None))]
-                cuts += [(held[k], slice(None)) for k in range(a + 1, b)]
-                cuts.append((held[b], slice(None, i1)))
+                if self._exact:
+                    cuts = [(held[a], slice(i0, None))]
+                    cuts += [(held[k], slice(None)) for k in range(a + 1, b)]
+                    cuts.append((held[b], slice(None, i1)))
+                else:
+                    # bounds, not the events' times: the first chunk may run past the window,
+                    # a later one start before it
+                    cuts = [(held[k], time_slice(held[k].t, lo[i], hi[i]))
+                            for k in range(a, b + 1)]
                 yield self._window([Chunk(c.ordinal, c.x[s], c.y[s], c.t[s], c.p[s])
                                     for c, s in cuts], -np.inf, np.inf)
         finally:

@@ -339,7 +339,7 @@ def open_dataset(path: str | Path, n: int = 3, options: ReadOptions | None = Non
         return _GoproSource(path, n)
     rec = open_events(path, options)
     try:
-        if rec.num_events() == 0:  # every method would only pass the blurry frames through
+        if rec.is_empty():  # every method would only pass the blurry frames through
             raise InputError("the recording holds no events", path=path,
                              hint="check the file (trmd info)")
         frames = frames_from_recording(rec)

@@ -258,7 +258,7 @@ def _check_windows(windows: Sequence[Exposure], recording, path) -> None:
     they pass through)."""
     if not windows:
         return
-    if recording.num_events() == 0:
+    if recording.is_empty():
         # else the line would blame the windows, against a time range of [0, 0]
         raise InputError("the recording holds no events", path=path,
                          hint="check the file (trmd info)")

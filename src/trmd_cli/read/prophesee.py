@@ -27,8 +27,10 @@ Decoders:
   checked, not decoded), and the chunks with nothing to repair are later unpacked without the
   repairs' checks: one decoding per read, as for files in the cache.
 * EVT 3.0 — decoded with the ``evt3`` package (not expelliarmus: it doubles EVT 3.0 times).
-  Its index needs the decoder's state, so a file larger than the cache is decoded once to open
-  it and once more to read it.
+  Small files are decoded when opened. Larger ones open on a scan of their raw words, which
+  finds the points where a fresh decoder can start (a TIME_HIGH word, with the clock's wraps,
+  the row and the vector column there): they are decoded once, when read, and windows far into
+  the file are reached without decoding what comes before.
 
 Both numpy decoders agree event for event with expelliarmus on the shared recordings (tests).
 """
@@ -48,7 +50,8 @@ import numpy as np
 from ..errors import FormatError
 from ..events import EventStream
 from .base import ReadOptions
-from .chunked import Chunk, ChunkedRecording, ChunkSummary
+from .chunked import Chunk, ChunkedRecording, ChunkSummary, time_slice
+from .evt3_words import Evt3Scan, resume_prefix, scan_evt3
 
 __all__ = [
     "read_evt2",
@@ -66,8 +69,11 @@ __all__ = [
 EVT2_CHUNK_WORDS = 1 << 20
 #: records per .dat chunk (8 MiB)
 DAT_CHUNK_EVENTS = 1 << 20
-#: bytes of EVT 3.0 fed to the evt3 decoder per chunk
+#: bytes of EVT 3.0 fed to the evt3 decoder per chunk (files decoded when opened)
 EVT3_CHUNK_BYTES = 4 << 20
+#: EVT 3.0 bodies up to this many bytes are decoded when opened; larger ones open on a scan
+#: of their words (a tenth of a decoding) and are decoded once, as they are read
+EVT3_EAGER_BYTES = 32 << 20
 
 #: sensor sizes by the name fragments found in ``% plugin_name`` / ``% sensor_generation``
 _KNOWN_SENSORS = (("genx320", (320, 320)), ("imx636", (1280, 720)), ("gen41", (1280, 720)),
@@ -798,15 +804,21 @@ def read_dat(path: Path, options: ReadOptions) -> DatRecording:
 
 
 class Evt3Recording(ChunkedRecording):
-    """An EVT 3.0 .raw file, decoded by the ``evt3`` package in bounded batches.
+    """An EVT 3.0 .raw file, decoded by the ``evt3`` package.
 
-    EVT 3.0 keeps decoder state across the whole stream, so a window is reached by decoding from
-    the start (skipping what comes before); files up to the cache size are decoded once.
+    EVT 3.0 keeps decoder state across the whole stream. Bodies up to :data:`EVT3_EAGER_BYTES`
+    are decoded when opened (every event checked; kept in memory when they fit the cache).
+    Larger ones open on a scan of their raw words (:mod:`trmd_cli.read.evt3_words`: the time
+    words give each segment's time bounds, the clock's wraps and points the decoder can start
+    at), so they are decoded once, as they are read; their events are checked (times in order,
+    coordinates inside the sensor) as each segment is decoded, and the event count is known
+    only after a pass (``num_events`` makes one).
     """
 
     gathers = True
 
-    def __init__(self, path: Path, options: ReadOptions, batch_bytes: int = EVT3_CHUNK_BYTES):
+    def __init__(self, path: Path, options: ReadOptions, batch_bytes: int = EVT3_CHUNK_BYTES,
+                 eager_bytes: int | None = None):
         from . import require
 
         self._evt3 = require("evt3", path=path)
@@ -820,13 +832,28 @@ class Evt3Recording(ChunkedRecording):
         super().__init__(path, "evt3", width, height, warnings)
         self.header = header
         self._batch_bytes = int(batch_bytes)
-        words = _whole_records(path, header.data_offset, 2, "16-bit word")
-        self._build_index()
-        if words and self.num_events() == 0:
-            _check_has_time_words(path, header.data_offset, words)
-        unknown = _undefined_evt3_words(path, header.data_offset, words)
-        if unknown:
-            count, first, kinds = unknown
+        self._words = words = _whole_records(path, header.data_offset, 2, "16-bit word")
+        scan = scan_evt3(path, header.data_offset, words)
+        if words and scan.first_time_word < 0:
+            # the decoder decodes no event before the first TIME_HIGH (type 0x8, sent every
+            # 4 ms whatever the scene): bytes without one are not a recording
+            raise FormatError(f"the header promises EVT 3.0 but its {2 * words}-byte body holds "
+                              "no event and no time word", path=path, hint=_DAMAGED)
+        eager = EVT3_EAGER_BYTES if eager_bytes is None else int(eager_bytes)
+        self._scan: Evt3Scan | None = None
+        self._range: tuple[int, int] | None = None
+        self._events: int | None = None
+        if 2 * words <= eager or width is None or height is None:
+            self._build_index()
+        else:
+            self._scan = scan
+            self.gathers, self._exact = False, False
+            self._ordinal = np.arange(len(scan.starts), dtype=np.int64)
+            self._first, self._last = scan.lo_us, scan.hi_us
+            self._resume = [(int(a), int(w)) for a, w in zip(scan.starts, scan.wraps,
+                                                             strict=True)]
+        if scan.undefined:
+            count, first, kinds = scan.undefined
             self.warnings.append(
                 f"{count} word(s) of type{'s' if len(kinds) > 1 else ''} "
                 f"{', '.join(f'0x{k:X}' for k in kinds)}, which EVT 3.0 does not define, were "
@@ -835,72 +862,154 @@ class Evt3Recording(ChunkedRecording):
 
     def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
         try:
+            if self._scan is not None:
+                yield from self._decode_segments(start)
+                return
             batches = self._evt3.decode_file_batches(str(self.path), batch_bytes=self._batch_bytes)
             for k, ev in enumerate(batches):
                 if k < start:
                     continue
-                t = np.asarray(ev.t)
-                # times are far below 2**63: reinterpret instead of copying
-                t = t.view(np.int64) if t.dtype == np.uint64 else t.astype(np.int64)
-                # polarity 0/1 → -1/+1 in one new array (int8 arithmetic wraps as the
-                # casts before did)
-                p = np.multiply(np.asarray(ev.p).view(np.int8), 2, dtype=np.int8)
-                np.subtract(p, 1, out=p)
-                yield Chunk(k, np.asarray(ev.x, np.uint16), np.asarray(ev.y, np.uint16), t, p)
+                yield self._chunk(k, ev, 0)
         except (OSError, ValueError, RuntimeError) as e:
             raise FormatError(f"EVT 3.0 decoding failed: {e}", path=self.path,
                               hint=_DAMAGED) from None
 
+    @staticmethod
+    def _chunk(k: int, ev, offset_us: int) -> Chunk:
+        t = np.asarray(ev.t)
+        # times are far below 2**63: reinterpret instead of copying
+        t = t.view(np.int64) if t.dtype == np.uint64 else t.astype(np.int64)
+        if offset_us:
+            t += offset_us
+        # polarity 0/1 → -1/+1 in one new array (int8 arithmetic wraps as the casts before did)
+        p = np.multiply(np.asarray(ev.p).view(np.int8), 2, dtype=np.int8)
+        np.subtract(p, 1, out=p)
+        return Chunk(k, np.asarray(ev.x, np.uint16), np.asarray(ev.y, np.uint16), t, p)
 
-#: the word types EVT 3.0 defines (bits 15–12): ADDR_Y, ADDR_X, VECT_BASE_X, VECT_12, VECT_8,
-#: TIME_LOW, CONTINUED_4, TIME_HIGH, EXT_TRIGGER, OTHERS, CONTINUED_12
-_EVT3_VALID = np.zeros(16, bool)
-_EVT3_VALID[[0x0, 0x2, 0x3, 0x4, 0x5, 0x6, 0x7, 0x8, 0xA, 0xE, 0xF]] = True
-#: the undefined types as the bits of one number: word type k is undefined when bit k is set
-_EVT3_UNDEFINED_BITS = np.uint16(sum(1 << k for k in range(16) if not _EVT3_VALID[k]))
-#: 16-bit words per block of the scan for undefined word types (512 KiB: the block and its
-#: temporary stay in the processor's cache between numpy's passes over them)
-_EVT3_SCAN_WORDS = 1 << 18
+    def _decode_segments(self, start: int) -> Iterator[Chunk]:
+        """The scan's segments from ``start`` on, one chunk each, decoded by one decoder fed
+        segment after segment and checked as they come."""
+        scan = self._scan
+        assert scan is not None
+        offset = self.header.data_offset
+        ends = np.append(scan.starts[1:], self._words)
+        decoder = self._evt3.Decoder(sensor_width=self.width, sensor_height=self.height)
+        # the decoder counts the wraps it sees; those before its first word are added
+        offset_us = int(scan.wraps[start]) << 24
+        last = -1
+        with open(self.path, "rb") as fh:
+            for k in range(start, len(scan.starts)):
+                a, b = int(scan.starts[k]), int(ends[k])
+                fh.seek(offset + 2 * a)
+                raw = fh.read(2 * (b - a))
+                if k == start and k > 0:
+                    # after the segment's TIME_HIGH, the row and vector column there
+                    prefix = resume_prefix(self.path, offset, a, scan.first_time_word)
+                    raw = raw[:2] + prefix.tobytes() + raw[2:]
+                ch = self._chunk(k, decoder.feed(raw), offset_us)
+                if len(ch.t):
+                    self._check(ch, last)
+                    last = int(ch.t[-1])
+                yield ch
 
+    def _check(self, ch: Chunk, last: int) -> None:
+        t = ch.t
+        if int(t[0]) < last or (len(t) > 1 and bool(np.less(t[1:], t[:-1]).any())):
+            i = 0 if int(t[0]) < last else int(np.flatnonzero(np.diff(t) < 0)[0]) + 1
+            before = last if i == 0 else int(t[i - 1])
+            raise FormatError(f"an event at {int(t[i])} µs follows one at {before} µs: it goes "
+                              "back in time (corrupt file?)", path=self.path,
+                              hint="camera files are written in time order; re-export the "
+                                   "recording")
+        xmax, ymax = int(ch.x.max()), int(ch.y.max())
+        if xmax >= self.width or ymax >= self.height:
+            axis, value = ("x", xmax) if xmax >= self.width else ("y", ymax)
+            raise FormatError(f"{axis} coordinate {value} is outside the {self.width}x"
+                              f"{self.height} sensor (corrupt file, or wrong sensor size?)",
+                              path=self.path, hint="check `sensor=(W, H)`")
 
-def _undefined_evt3_words(path: Path, offset: int, words: int
-                          ) -> tuple[int, int, list[int]] | None:
-    """(count, index of the first, their types) of the words whose type EVT 3.0 does not
-    define — which the decoder skips without a word — or None."""
-    count, first, kinds = 0, -1, set()
-    w = np.empty(_EVT3_SCAN_WORDS, np.uint16)
-    typ = np.empty(_EVT3_SCAN_WORDS, np.uint16)
-    with open(path, "rb") as fh:
-        fh.seek(offset)
-        for start in range(0, words, _EVT3_SCAN_WORDS):
-            n = min(_EVT3_SCAN_WORDS, words - start)
-            block, t = w[:n], typ[:n]
-            fh.readinto(memoryview(block).cast("B"))
-            np.right_shift(block.view("<u2"), 12, out=t)
-            # bit `type` of the undefined-types number, for every word at once: no table
-            # look-up (numpy's indexing is several times slower than its arithmetic)
-            np.right_shift(_EVT3_UNDEFINED_BITS, t, out=block)
-            np.bitwise_and(block, 1, out=block)
-            if block.any():
-                at = np.flatnonzero(block)
-                count += len(at)
-                first = start + int(at[0]) if first < 0 else first
-                kinds.update(int(k) for k in np.unique(t[at]))
-    return (count, first, sorted(kinds)) if count else None
+    def _one_chunk(self, k: int) -> Chunk:
+        source = self._decode(k, self._resume[k])
+        try:
+            return next(source)
+        finally:
+            source.close()  # type: ignore[attr-defined]
 
+    def time_range_us(self) -> tuple[int, int]:
+        if self._scan is None:
+            return super().time_range_us()
+        if self._range is None:
+            source = self._decode(0)
+            try:
+                first = next((int(c.t[0]) for c in source if len(c.t)), None)
+            finally:
+                source.close()  # type: ignore[attr-defined]
+            last = first
+            for k in range(len(self._ordinal) - 1, -1, -1) if first is not None else ():
+                ch = self._one_chunk(k)
+                if len(ch.t):
+                    last = int(ch.t[-1])
+                    break
+            if first is None:
+                self._range, self._events = (0, 0), 0
+            else:
+                self._range = (first, int(last))
+        return self._range
 
-def _check_has_time_words(path: Path, offset: int, words: int) -> None:
-    """A body without one event must at least hold EVT 3.0's TIME_HIGH words (type 0x8, sent
-    every 4 ms whatever the scene): bytes without them are not a recording."""
-    chunk = 1 << 20
-    with open(path, "rb") as fh:
-        fh.seek(offset)
-        for start in range(0, words, chunk):
-            w = np.fromfile(fh, "<u2", min(chunk, words - start))
-            if np.any((w >> 12) == 0x8):
-                return
-    raise FormatError(f"the header promises EVT 3.0 but its {2 * words}-byte body holds no "
-                      "event and no time word", path=path, hint=_DAMAGED)
+    def is_empty(self) -> bool:
+        if self._scan is None:
+            return super().is_empty()
+        self.time_range_us()
+        return self._events == 0
+
+    def num_events(self) -> int:
+        if self._scan is None:
+            return super().num_events()
+        if self._events is None:
+            source = self._decode(0)
+            try:
+                self._events = sum(len(c.t) for c in source)
+            finally:
+                source.close()  # type: ignore[attr-defined]
+        return self._events
+
+    def events(self, start_us: float | None = None, end_us: float | None = None) -> EventStream:
+        if self._scan is None:
+            return super().events(start_us, end_us)
+        lo = -np.inf if start_us is None else start_us
+        hi = np.inf if end_us is None else end_us
+        sel = np.flatnonzero((self._last >= lo) & (self._first < hi))
+        if len(sel) <= 2:
+            return super().events(start_us, end_us)
+        if sel[0] == 0 and sel[-1] == len(self._ordinal) - 1:
+            # the whole file: the decoder's one call writes straight into the arrays returned
+            try:
+                ch = self._chunk(0, self._evt3.decode_file(str(self.path)), 0)
+            except (OSError, ValueError, RuntimeError) as e:
+                raise FormatError(f"EVT 3.0 decoding failed: {e}", path=self.path,
+                                  hint=_DAMAGED) from None
+            if len(ch.t):
+                self._check(ch, -1)
+            self._events = len(ch.t)
+            ev = EventStream(ch.x, ch.y, ch.t, ch.p, self.width, self.height)
+            return ev.take(time_slice(ev.t, lo, hi))
+        # a long span: each segment's part as it is decoded, joined at the end (the windows
+        # kept for requests that move forward would hold the whole span a second time)
+        parts: list[EventStream] = []
+        source = self._decode(int(sel[0]), self._resume[int(sel[0])])
+        try:
+            for ch in source:
+                part = EventStream(ch.x, ch.y, ch.t, ch.p, self.width, self.height)
+                part = part.take(time_slice(ch.t, lo, hi))
+                if len(part):
+                    parts.append(part)
+                if ch.ordinal >= sel[-1]:
+                    break
+        finally:
+            source.close()  # type: ignore[attr-defined]
+        if not parts:
+            return EventStream.empty(self.width, self.height)
+        return parts[0] if len(parts) == 1 else EventStream.concatenate(parts)
 
 
 def read_evt3(path: Path, options: ReadOptions) -> Evt3Recording:
