@@ -53,7 +53,7 @@ class Recording:
     def __len__(self) -> int:
         return len(self.items)
 
-    def subset(self, positions):
+    def subset(self, positions, keep=False):
         return [self.items[p] for p in sorted(set(positions))]
 
 
@@ -204,3 +204,39 @@ def test_one_frame_settles_its_own(seq):
     one = Recording(windows(seq).items[:1])
     method = EdiMethod()
     assert settle_recording(method, one, MethodConfig(method="edi")) == (method, None)
+
+
+def test_threaded_pooled_search_sums_as_one_by_one(seq):
+    # the pooled energy, evaluated on two threads, is the in-order sum of the exposures' parts
+    items = windows(seq).items[:3]
+    objectives = [objective(it) for it in items]
+    c, energy, _, evaluations = search_contrast_pooled(objectives)
+    fresh = [objective(it) for it in items]
+    total = sum(o.total for o in fresh)
+    assert evaluations == 9
+    from trmd_cli.threshold import _minimise
+
+    x, e, _ = _minimise(lambda g: 1.0 - sum(o.explained(float(np.exp(g))) for o in fresh)
+                        / total, np.log(0.05), np.log(1.0))
+    assert float(np.exp(x)) == c and e == energy
+
+
+def test_window_model_is_kept_for_the_same_stream_only(seq):
+    import gc
+
+    from trmd_cli import methods
+
+    item = windows(seq).items[0]
+    ev, exp = item.events, item.exposure
+    first = window_model(ev, exp, True)
+    assert window_model(ev, exp, True) is first  # the same stream: not sorted again
+    other = window_model(ev, exp, False)  # another question: answered anew
+    assert other is not first and other[1] is None
+    copy = EventStream(ev.x.copy(), ev.y.copy(), ev.t.copy(), ev.p.copy(), ev.width, ev.height)
+    again = window_model(copy, exp, False)
+    assert again is not other
+    np.testing.assert_array_equal(again[0].integral(0.3), other[0].integral(0.3))
+    key = id(copy)
+    del copy, again
+    gc.collect()
+    assert key not in methods._MODELS  # the entry went with its stream

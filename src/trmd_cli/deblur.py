@@ -170,7 +170,8 @@ def recording_contrast(source: Sequence, *, hot_pixels: bool = True,
         return None
     positions = sorted({int(round(p)) for p in np.linspace(0, n - 1, min(n, candidates))})
     kept: list[tuple[int, int, FrameWindow | BinnedWindow]] = []
-    for pos, item in zip(positions, source.subset(positions), strict=True):
+    # (the windows read here are kept for the deblurring pass, which then reads them once)
+    for pos, item in zip(positions, source.subset(positions, keep=True), strict=True):
         count = _count(item)
         if count < MIN_EVENTS:
             continue

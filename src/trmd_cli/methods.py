@@ -20,6 +20,7 @@ when the default changes.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -307,10 +308,24 @@ def window_model(events: EventStream | np.ndarray, exposure: Exposure | None,
     if isinstance(events, EventStream):
         if exposure is None:
             raise InputError("raw events need their exposure window")
+        key = (exposure, bool(hot_pixels))
+        kept = _MODELS.get(id(events))
+        if kept is not None and kept[0]() is events and kept[1] == key:
+            return kept[2]
         window = PixelEvents.build(events, exposure)
         hot = hot_pixel_mask(events, exposure, window=window) if hot_pixels else None
-        return EdiEvents.build(events, exposure, hot, window=window), hot, window
+        model = (EdiEvents.build(events, exposure, hot, window=window), hot, window)
+        if id(events) not in _MODELS:
+            weakref.finalize(events, _MODELS.pop, id(events), None)
+        _MODELS[id(events)] = (weakref.ref(events), key, model)
+        return model
     return EdiBins.build(_check_bins(events)), None, None
+
+
+#: the last window model of each event stream still alive, by identity: a frame the
+#: recording's threshold was measured on is not sorted and tabulated again when it is
+#: deblurred (the entry goes with the stream)
+_MODELS: dict[int, tuple[weakref.ref, tuple, tuple]] = {}
 
 
 class EdiMethod:

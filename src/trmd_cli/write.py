@@ -517,11 +517,13 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
     lines = ["# file fraction (of the exposure: 0 = start, 1 = end; binned events, no event "
              "clock)" if binned else "# file time_us (event clock)"]
     names = [f"frame_{k:0{width}d}.png" for k in range(len(frames))]
-    # encoding is most of the cost and releases the GIL: two frames at a time (the files are
-    # then written one by one: the same bytes in the same files)
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        encoded = list(pool.map(lambda name, img: _image_bytes(folder / name, img, bit_depth),
-                                names, frames))
+    # all frames to integers in one pass over the stack (the same numbers as frame by frame);
+    # encoding is most of the rest and releases the GIL: two frames at a time, on threads
+    # kept between calls (the files are then written one by one: the same bytes)
+    ints = to_uint(np.asarray(frames), bit_depth) if np.asarray(frames).dtype.kind == "f" \
+        else frames
+    encoded = list(_encoders().map(lambda name, img: _image_bytes(folder / name, img, bit_depth),
+                                   names, ints))
     for name, data, t in zip(names, encoded, result.instants_us, strict=True):
         write_bytes(folder / name, data)
         lines.append(f"{name} {fmt_fraction(t) if binned else _fmt_us(t)}")
@@ -563,6 +565,19 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
     full = {**(meta or {}), **info}
     write_json(folder / "meta.json", full)
     return info
+
+
+_POOL: dict[int, ThreadPoolExecutor] = {}
+
+
+def _encoders() -> ThreadPoolExecutor:
+    """Two threads for image encoding, made once per process (starting threads for every
+    result folder cost a tenth of its writing). By process id: a forked worker does not
+    inherit its parent's threads, only their record."""
+    pid = os.getpid()
+    if pid not in _POOL:
+        _POOL[pid] = ThreadPoolExecutor(max_workers=2, thread_name_prefix="trmd-encode")
+    return _POOL[pid]
 
 
 def _fmt_us(t: float) -> str:

@@ -244,3 +244,27 @@ def test_single_image_with_event_file_or_folder(tmp_path, rng):
     one = open_frame_folder(tmp_path / "esl" / "images" / "000008.png", tmp_path / "esl" / "mat")
     (fw,) = list(one)
     np.testing.assert_array_equal(fw.events.t, truth[8][1])
+
+
+def test_windows_read_ahead_by_a_subset_are_not_read_again(tmp_path, rng, monkeypatch):
+    from trmd_cli.read import folders
+
+    truth = _esl_pair(tmp_path, rng, numbers=(14, 15, 16, 17))
+    # past the budget nothing is kept, and every window is read by the pass itself
+    with monkeypatch.context() as m:
+        m.setattr(folders, "KEEP_EVENTS", 100)
+        small = open_frame_folder(tmp_path / "images")
+        assert len(list(small.subset([0, 2], keep=True))) == 2 and small._kept == {}
+    src = open_frame_folder(tmp_path / "images")
+    ahead = list(src.subset([1, 3], keep=True))
+    # the kept files are gone: the source's own pass can only give them from memory
+    for n in (15, 17):
+        (tmp_path / "mat" / f"event{n:06d}.mat").unlink()
+    got = list(src)
+    assert [fw.frame.index for fw in got] == [14, 15, 16, 17]
+    assert got[1] is ahead[0] and got[3] is ahead[1]
+    for fw in got:
+        np.testing.assert_array_equal(fw.events.t, truth[fw.frame.index][1])
+    # taken once: a second pass reads the files again (and finds them gone)
+    with pytest.raises((OSError, InputError)):
+        list(src)

@@ -209,6 +209,10 @@ def _exposures_from_files(files: tuple[Path, Path], count: int, unit: str | None
             for a, b in zip(start, end, strict=True)]
 
 
+#: events a source keeps in all for its own pass from windows read ahead by a subset
+KEEP_EVENTS = 2_000_000
+
+
 class FrameSource:
     """Frames with exposure windows, and the events of each window, one frame at a time.
 
@@ -228,6 +232,10 @@ class FrameSource:
         self._stored = stored_frames
         self._options = options or ReadOptions()
         self._owns = owns_recording
+        # windows read ahead through a subset (``keep=True``), by entry, until this source's
+        # own pass reaches them: shared with the subsets
+        self._kept: dict[FrameEntry, FrameWindow] = {}
+        self._kept_events = [0]
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -238,20 +246,51 @@ class FrameSource:
     def names(self) -> list[str]:
         return [e.name for e in self.entries]
 
-    def subset(self, positions: Sequence[int]) -> FrameSource:
-        """The same source restricted to the frames at ``positions`` (0-based, in order)."""
-        keep = sorted(set(int(i) for i in positions))
-        if keep and (keep[0] < 0 or keep[-1] >= len(self.entries)):
-            raise InputError(f"frame positions {keep[0]}..{keep[-1]} outside 0..{len(self) - 1}")
-        return FrameSource([self.entries[i] for i in keep], self.width, self.height,
-                           recording=self.recording, stored_frames=self._stored,
-                           options=self._options, warnings=list(self.warnings))
+    def subset(self, positions: Sequence[int], keep: bool = False) -> FrameSource:
+        """The same source restricted to the frames at ``positions`` (0-based, in order).
+
+        ``keep``: the windows the subset reads from per-frame files (up to
+        :data:`KEEP_EVENTS` events in all) are kept for this source's own pass, which then
+        does not read them again (a recording's threshold reads frames before they are
+        deblurred)."""
+        chosen = sorted(set(int(i) for i in positions))
+        if chosen and (chosen[0] < 0 or chosen[-1] >= len(self.entries)):
+            raise InputError(f"frame positions {chosen[0]}..{chosen[-1]} outside "
+                             f"0..{len(self) - 1}")
+        sub = FrameSource([self.entries[i] for i in chosen], self.width, self.height,
+                          recording=self.recording, stored_frames=self._stored,
+                          options=self._options, warnings=list(self.warnings))
+        sub._kept, sub._kept_events = self._kept, self._kept_events
+        sub._keeping = keep
+        return sub
+
+    #: whether the windows this source reads are kept for the source it is a subset of
+    _keeping = False
 
     def __iter__(self) -> Iterator[FrameWindow]:
         return self.iter_windows()
 
     def iter_windows(self, margin_us: int = 0) -> Iterator[FrameWindow]:
         """Frames in order with the events of ``[start - margin, end + margin]`` µs."""
+        if self.recording is None and not self._stored and margin_us == 0:
+            # per-frame files: one frame at a time, windows read ahead by a subset reused
+            for entry in self.entries:
+                item = self._kept.pop(entry, None)
+                if item is not None:
+                    self._kept_events[0] -= len(item.events)
+                    if not self._keeping:
+                        yield item
+                        continue
+                else:
+                    img, note = read_image_noted(entry.image_path)  # type: ignore[arg-type]
+                    check_frame_matches(img, self.width, self.height, entry.image_path)
+                    item = FrameWindow(Frame(img, entry.exposure, entry.index, entry.name,
+                                             note), self._file_events(entry, 0))
+                if self._keeping and self._kept_events[0] + len(item.events) <= KEEP_EVENTS:
+                    self._kept[entry] = item
+                    self._kept_events[0] += len(item.events)
+                yield item
+            return
         frames = self._frames()
         events = self._events(margin_us)
         for frame, ev in zip(frames, events, strict=False):
@@ -278,20 +317,25 @@ class FrameSource:
         if self.recording is not None:
             yield from self.recording.iter_windows(self.exposures(), margin_us)
             return
+        for entry in self.entries:
+            yield self._file_events(entry, margin_us)
+
+    def _file_events(self, entry: FrameEntry, margin_us: int) -> EventStream:
         from . import open_events
 
         opts = self._options
         if opts.sensor is None:
             opts = replace(opts, sensor=(self.width, self.height))
-        for entry in self.entries:
-            e = entry.exposure
-            with open_events(entry.events_path, opts) as rec:  # type: ignore[arg-type]
-                if rec.sensor_size() != (self.width, self.height):
-                    raise InputError(f"events are {rec.width}x{rec.height} but the frames are "
-                                     f"{self.width}x{self.height}", path=entry.events_path)
-                yield rec.events(e.start_us - margin_us, e.end_us + margin_us + 1)
+        e = entry.exposure
+        with open_events(entry.events_path, opts) as rec:  # type: ignore[arg-type]
+            if rec.sensor_size() != (self.width, self.height):
+                raise InputError(f"events are {rec.width}x{rec.height} but the frames are "
+                                 f"{self.width}x{self.height}", path=entry.events_path)
+            return rec.events(e.start_us - margin_us, e.end_us + margin_us + 1)
 
     def close(self) -> None:
+        self._kept.clear()
+        self._kept_events[0] = 0
         if self._owns and self.recording is not None:
             self.recording.close()
 
@@ -356,8 +400,10 @@ class BinnedSource:
     def names(self) -> list[str]:
         return [p.stem for p in self.images]
 
-    def subset(self, positions: Sequence[int]) -> BinnedSource:
-        """The same source restricted to the frames at ``positions`` (0-based, in order)."""
+    def subset(self, positions: Sequence[int], keep: bool = False) -> BinnedSource:
+        """The same source restricted to the frames at ``positions`` (0-based, in order).
+        ``keep`` is accepted as :meth:`FrameSource.subset` takes it; binned counts are read
+        from one file, already cheap to read again."""
         from .bins import BinnedEvents
 
         keep = sorted(set(int(i) for i in positions))
