@@ -289,3 +289,15 @@ def test_edi_with_the_true_threshold_sharpens_a_simulated_frame():
     gain = [psnr(lat[k], s.sharp[k]) - psnr(s.blurry, s.sharp[k]) for k in range(7)]
     assert min(gain) > 3.0, gain
     assert gain[3] > 5.0, gain
+
+
+@pytest.mark.parametrize("n_pix", [7, 1 << 16, (1 << 16) + 1, 1280 * 720, (1 << 32) + 5])
+def test_pixel_order_is_the_stable_sort_by_pixel(n_pix):
+    from trmd_cli.edi import _pixel_order
+
+    rng = np.random.default_rng(n_pix % 1000)
+    for n in (0, 1, 2, 999, 40_000):
+        flat = rng.integers(0, n_pix, n).astype(np.int64)
+        flat[: n // 3] = flat[0] if n else 0  # many ties: their time order must be kept
+        np.testing.assert_array_equal(_pixel_order(flat, n_pix),
+                                      np.argsort(flat, kind="stable"))

@@ -174,10 +174,18 @@ def _check_window(window: PixelEvents, exposure: Exposure | None) -> None:
 def _pixel_order(flat: np.ndarray, n_pix: int) -> np.ndarray:
     """The stable order of ``flat``: by pixel, ties in their given (time) order.
 
-    Sorting one packed key (pixel above, index below) gives exactly that order and is several
-    times faster than numpy's stable argsort on int64.
+    Up to 2**32 pixels: a least-significant-digit radix sort in 16-bit digits (numpy's stable
+    argsort of 16-bit keys is a radix sort: one pass per digit, a second only for sensors of
+    more than 65,536 pixels), twice as fast as sorting one packed key. Else the packed key
+    (pixel above, index below), several times faster than a stable argsort on int64.
     """
     e = len(flat)
+    if 0 < e and n_pix <= 1 << 32:
+        order = np.argsort((flat & 0xFFFF).astype(np.uint16), kind="stable")
+        if n_pix <= 1 << 16:
+            return order
+        high = (flat >> 16).astype(np.uint16)[order]
+        return order[np.argsort(high, kind="stable")]
     shift = max(int(e - 1).bit_length(), 1)
     if e == 0 or (max(n_pix, 1) << shift) >= 1 << 62:
         return np.argsort(flat, kind="stable")
