@@ -1,7 +1,7 @@
 """Whole-recording cost per frame against the bare network, measured in the same process.
 
     python bench/bench_recording.py [INPUTS …] [--method trmd] [--threads T] [--precision P]
-                                    [--repeat R] [--profile]
+                                    [--repeat R] [--profile] [--contrast C]
 
 What `trmd deblur INPUTS -o OUT` does per frame after start-up — the recording's contrast
 threshold (estimated once on its busiest frames; ``--contrast-scope frame``: per frame, as
@@ -13,6 +13,8 @@ passes) and against the network's own time inside that pass (what it spent per f
 under whatever else ran: on a shared machine the steadier ratio); the process's CPU time is
 given beside each wall time. OpenMP threads wait passively, as `trmd` sets them. The start-up
 (imports, loading the weights) is reported apart.
+
+``--contrast C`` gives the threshold (no estimate): what the rest of the run costs.
 
 ``--profile`` adds one pass without the overlap, each stage timed on its own (median over the
 frames, ms of wall time, and in brackets of the thread's CPU time, which other work on the
@@ -141,6 +143,8 @@ def main() -> None:
                     help="the network's arithmetic (auto: bfloat16 where the CPU has it)")
     ap.add_argument("--repeat", type=int, default=1, help="passes over the recording; the best")
     ap.add_argument("--profile", action="store_true", help="also time each stage")
+    ap.add_argument("--contrast", type=float, default=None,
+                    help="a given threshold c: no estimate (what the rest of the run costs)")
     ap.add_argument("--contrast-scope", default="recording", choices=["recording", "frame"],
                     help="one threshold for the recording (trmd's default) or one per frame")
     args = ap.parse_args()
@@ -157,7 +161,7 @@ def main() -> None:
     from trmd_cli.write import write_result_folder
 
     config = MethodConfig(method=args.method, threads=args.threads, precision=args.precision,
-                          contrast_scope=args.contrast_scope)
+                          contrast=args.contrast, contrast_scope=args.contrast_scope)
     est = make_method(config)
     start_s = time.perf_counter() - t0
     whole, inside, cpu = float("inf"), float("nan"), float("nan")
@@ -187,8 +191,9 @@ def main() -> None:
         if args.profile:
             with open_inputs(args.inputs, ReadOptions()) as ins:
                 stages = profile(ins, est, config, Path(tmp))
+    scope = f"c = {args.contrast:g} given" if args.contrast else f"c per {args.contrast_scope}"
     line = (f"{' '.join(p.name for p in args.inputs)}: {frames} frames {w}x{h}, {args.method}, "
-            f"{torch.get_num_threads()} threads, c per {args.contrast_scope}; "
+            f"{torch.get_num_threads()} threads, {scope}; "
             f"start-up {start_s:.2f} s; "
             f"whole recording {whole * 1e3:.0f} ms per frame ({1 / whole:.1f} frames/s, "
             f"CPU {cpu * 1e3:.0f} ms)")
