@@ -122,8 +122,10 @@ class _Damaged(Exception):
     """The bytes do not follow the MAT-file level 5 layout."""
 
 
-def _elements(buf: bytes, pos: int, end: int, order: str):
-    """(type, data) of each data element in ``buf[pos:end]``."""
+def _elements(buf: bytes | memoryview, pos: int, end: int, order: str):
+    """(type, data) of each data element in ``buf[pos:end]``; the data are views of ``buf``
+    (copying a variable's bytes out of the file's cost as much as parsing it)."""
+    buf = memoryview(buf)
     while pos + 8 <= end:
         typ, nbytes = np.frombuffer(buf, order + "u4", 2, pos)
         typ, nbytes = int(typ), int(nbytes)
@@ -142,7 +144,7 @@ def _elements(buf: bytes, pos: int, end: int, order: str):
             raise _Damaged(f"element at byte {pos} runs past its end ({nbytes} bytes)")
         yield typ, buf[start:stop]
         pos = nxt
-    if pos < end and buf[pos:end].strip(b"\x00"):
+    if pos < end and bytes(buf[pos:end]).strip(b"\x00"):
         raise _Damaged(f"{end - pos} stray bytes at byte {pos}")
 
 
@@ -154,7 +156,7 @@ def _matrix(data: bytes, order: str) -> tuple[str, np.ndarray | None]:
         raise _Damaged("a variable header lacks its flags, dimensions or name")
     flags = int(np.frombuffer(parts[0][1], order + "u4", 1)[0])
     dims = np.frombuffer(parts[1][1], order + "i4")
-    name = parts[2][1].decode("latin-1")
+    name = bytes(parts[2][1]).decode("latin-1")
     if (dims < 0).any():
         raise _Damaged(f"variable {name!r} has negative dimensions {dims.tolist()}")
     mx, is_complex = flags & 0xFF, bool(flags & 0x800)
