@@ -23,6 +23,7 @@ obtained with the true c (``bench/bench_edi.py`` prints the figure).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -316,8 +317,6 @@ def search_contrast_pooled(objectives: list[ContrastObjective],
     if not objectives:
         raise InputError("no exposure to estimate the contrast threshold from")
     total = sum(o.total for o in objectives)
-    from concurrent.futures import ThreadPoolExecutor
-
     # the exposures' parts of one evaluation on two threads (their filters and products
     # release the GIL), summed in the exposures' order: the same number as one by one
     with ThreadPoolExecutor(max_workers=min(2, len(objectives))) as pool:

@@ -520,8 +520,8 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
     # all frames to integers in one pass over the stack (the same numbers as frame by frame);
     # encoding is most of the rest and releases the GIL: two frames at a time, on threads
     # kept between calls (the files are then written one by one: the same bytes)
-    ints = to_uint(np.asarray(frames), bit_depth) if np.asarray(frames).dtype.kind == "f" \
-        else frames
+    stack = np.asarray(frames)
+    ints = to_uint(stack, bit_depth) if stack.dtype.kind == "f" else stack
     encoded = list(_encoders().map(lambda name, img: _image_bytes(folder / name, img, bit_depth),
                                    names, ints))
     for name, data, t in zip(names, encoded, result.instants_us, strict=True):

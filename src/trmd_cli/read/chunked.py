@@ -16,9 +16,9 @@ first and last time and its event count. Afterwards
 
 A reader may index a chunk without decoding it (:class:`ChunkSummary`) when it can check the
 chunk on its raw bytes for less than a decoding costs (.dat). A reader may also index bounds on
-its chunks' times instead of the times (``_exact = False``, large EVT 3.0 files): it then
-builds the index itself, checks each chunk as it decodes it, and windows slice every chunk they
-touch.
+its chunks' times instead of the times (large EVT 3.0 files: every event of chunk k lies in
+``[_first[k], _last[k]]``): it then builds the index itself and checks each chunk as it decodes
+it (:meth:`ChunkedRecording._check_inside`); windows slice every chunk they touch.
 """
 
 from __future__ import annotations
@@ -36,8 +36,11 @@ from ..errors import FormatError
 from ..events import EventStream, Exposure
 from .base import Recording
 
-__all__ = ["Chunk", "ChunkSummary", "ChunkedRecording", "CACHE_MAX_EVENTS", "time_slice"]
+__all__ = ["Chunk", "ChunkSummary", "ChunkedRecording", "CACHE_MAX_EVENTS", "IN_ORDER_HINT",
+           "time_slice"]
 
+#: what a camera file whose times go back should do
+IN_ORDER_HINT = "camera files are written in time order; re-export the recording"
 #: recordings with at most this many events stay in memory after opening (~13 bytes per event)
 CACHE_MAX_EVENTS = 10_000_000
 
@@ -184,7 +187,7 @@ class ChunkedRecording(Recording):
 
     def _time_error(self, index: int) -> FormatError:
         return FormatError(f"event {index} goes back in time (corrupt file?)", path=self.path,
-                           hint="camera files are written in time order; re-export the recording")
+                           hint=IN_ORDER_HINT)
 
     #: the warning when the file states no sensor size (``{w}``, ``{h}``: the size taken)
     size_guess_note = ("the file stores no sensor size; using {w}x{h} from the largest "
@@ -196,6 +199,10 @@ class ChunkedRecording(Recording):
             self.width = self.width or w  # type: ignore[assignment]
             self.height = self.height or h  # type: ignore[assignment]
             self.warnings.append(self.size_guess_note.format(w=self.width, h=self.height))
+        self._check_inside(xmax, ymax)
+
+    def _check_inside(self, xmax: int, ymax: int) -> None:
+        """Bad input when the largest column or row lies outside the sensor."""
         if xmax >= self.width or ymax >= self.height:
             axis, value = ("x", xmax) if xmax >= self.width else ("y", ymax)
             raise FormatError(f"{axis} coordinate {value} is outside the {self.width}x"
@@ -242,10 +249,6 @@ class ChunkedRecording(Recording):
             ev = self._gather(int(sel[0]), int(sel[-1]))
             return ev.take(time_slice(ev.t, lo, hi))
         return self._window(self._fetch(int(sel[0]), int(sel[-1])), lo, hi)
-
-    #: whether the index holds each chunk's first and last event times (else bounds on them:
-    #: every event of chunk k lies in ``[_first[k], _last[k]]``, chunks in time order)
-    _exact = True
 
     #: spans of more than two chunks are decoded into one set of arrays (:meth:`_gather`)
     #: instead of joining chunks held together; readers whose chunks have the dtypes of
@@ -397,15 +400,10 @@ class ChunkedRecording(Recording):
                     yield (EventStream(c.x[i0:i1], c.y[i0:i1], c.t[i0:i1], c.p[i0:i1], width,
                                        height) if i1 > i0 else EventStream.empty(width, height))
                     continue
-                if self._exact:
-                    cuts = [(held[a], slice(i0, None))]
-                    cuts += [(held[k], slice(None)) for k in range(a + 1, b)]
-                    cuts.append((held[b], slice(None, i1)))
-                else:
-                    # bounds, not the events' times: the first chunk may run past the window,
-                    # a later one start before it
-                    cuts = [(held[k], time_slice(held[k].t, lo[i], hi[i]))
-                            for k in range(a, b + 1)]
+                # every chunk sliced to the window: an index of time bounds (not the events'
+                # own first and last times) lets the first run past it, a later one start
+                # before it
+                cuts = [(held[k], time_slice(held[k].t, lo[i], hi[i])) for k in range(a, b + 1)]
                 yield self._window([Chunk(c.ordinal, c.x[s], c.y[s], c.t[s], c.p[s])
                                     for c, s in cuts], -np.inf, np.inf)
         finally:

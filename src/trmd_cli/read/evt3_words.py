@@ -18,10 +18,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
 from ..errors import FormatError
+from .chunked import IN_ORDER_HINT
 
 __all__ = ["Evt3Scan", "scan_evt3", "resume_prefix", "WRAP_MIN_DROP", "SCAN_WORDS"]
 
@@ -144,7 +146,7 @@ def scan_evt3(path: Path, offset: int, words: int, block_words: int | None = Non
         k = int(back[0]) + 1
         raise FormatError(f"the clock goes back in time near word {int(starts[k]):,} (its time "
                           "words fall below those before: corrupt file?)", path=path,
-                          hint=_IN_ORDER)
+                          hint=IN_ORDER_HINT)
     return Evt3Scan(np.asarray(starts, np.int64), np.asarray(wraps, np.int64),
                     lo_us, hi_us, first_time,
                     (undefined, first_undefined, sorted(kinds)) if undefined else None)
@@ -162,9 +164,6 @@ def _last_true(mask: np.ndarray) -> int:
         k *= 8
 
 
-_IN_ORDER = "camera files are written in time order; re-export the recording"
-
-
 def _wrapped_block(block: np.ndarray, is_time: np.ndarray, prev: int, wrapped: int, start: int,
                    path: Path) -> tuple[int, int, int, int]:
     """For a block that may hold a wrap: (wraps before its first time word, wraps in it, its
@@ -179,7 +178,7 @@ def _wrapped_block(block: np.ndarray, is_time: np.ndarray, prev: int, wrapped: i
         i = int(back[0])
         raise FormatError(f"the clock goes back in time at word {start + int(where[i]):,} (time "
                           f"word 0x{int(v[i - 1]) if i else prev:03X} then 0x{int(v[i]):03X}: "
-                          "corrupt file?)", path=path, hint=_IN_ORDER)
+                          "corrupt file?)", path=path, hint=IN_ORDER_HINT)
     high = (wrapped + np.cumsum(wrap)) * 4096 + v
     return int(wrap[0]), int(wrap.sum()), int(high.min()), int(high.max())
 
@@ -188,35 +187,36 @@ def _wrapped_block(block: np.ndarray, is_time: np.ndarray, prev: int, wrapped: i
 _BACK_WORDS = 1 << 14
 
 
-def resume_prefix(path: Path, offset: int, at: int, first_time_word: int) -> np.ndarray:
+def resume_prefix(fh: BinaryIO, offset: int, at: int, first_time_word: int) -> np.ndarray:
     """The words that give a fresh decoder, fed them right after the TIME_HIGH word at index
     ``at``, the state a decoder that started at the beginning has there: the last ADDR_Y
     before ``at``, and the last VECT_BASE_X followed by an empty VECT_12 / VECT_8 for each
     vector since (an empty vector moves the column on and decodes no event).
 
-    The decoder ignores these words before the file's first TIME_HIGH: the search stops there.
+    ``fh``: the file, open for reading (its position is left anywhere); ``offset``: the byte
+    where its words start. The decoder ignores these words before the file's first TIME_HIGH:
+    the search stops there.
     """
     y_word = base_word = None
     moves: list[np.ndarray] = []  # the vector words after the base, latest block first
     stop = max(first_time_word, 0)
     hi = at
-    with open(path, "rb") as fh:
-        while hi > stop and (y_word is None or base_word is None):
-            lo = max(stop, hi - _BACK_WORDS)
-            fh.seek(offset + 2 * lo)
-            w = np.fromfile(fh, "<u2", hi - lo)
-            t = w >> 12
-            if y_word is None:
-                ys = np.flatnonzero(t == _ADDR_Y)
-                if len(ys):
-                    y_word = int(w[ys[-1]])
-            if base_word is None:
-                bases = np.flatnonzero(t == _VECT_BASE_X)
-                tail = t[int(bases[-1]) + 1:] if len(bases) else t
-                moves.append(tail[(tail == _VECT_12) | (tail == _VECT_8)])
-                if len(bases):
-                    base_word = int(w[bases[-1]])
-            hi = lo
+    while hi > stop and (y_word is None or base_word is None):
+        lo = max(stop, hi - _BACK_WORDS)
+        fh.seek(offset + 2 * lo)
+        w = np.frombuffer(fh.read(2 * (hi - lo)), "<u2")
+        t = w >> 12
+        if y_word is None:
+            ys = np.flatnonzero(t == _ADDR_Y)
+            if len(ys):
+                y_word = int(w[ys[-1]])
+        if base_word is None:
+            bases = np.flatnonzero(t == _VECT_BASE_X)
+            tail = t[int(bases[-1]) + 1:] if len(bases) else t
+            moves.append(tail[(tail == _VECT_12) | (tail == _VECT_8)])
+            if len(bases):
+                base_word = int(w[bases[-1]])
+        hi = lo
     words = [] if y_word is None else [y_word]
     if base_word is not None:
         words.append(base_word)

@@ -235,7 +235,6 @@ class FrameSource:
         # windows read ahead through a subset (``keep=True``), by entry, until this source's
         # own pass reaches them: shared with the subsets
         self._kept: dict[FrameEntry, FrameWindow] = {}
-        self._kept_events = [0]
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -260,8 +259,7 @@ class FrameSource:
         sub = FrameSource([self.entries[i] for i in chosen], self.width, self.height,
                           recording=self.recording, stored_frames=self._stored,
                           options=self._options, warnings=list(self.warnings))
-        sub._kept, sub._kept_events = self._kept, self._kept_events
-        sub._keeping = keep
+        sub._kept, sub._keeping = self._kept, keep
         return sub
 
     #: whether the windows this source reads are kept for the source it is a subset of
@@ -276,19 +274,14 @@ class FrameSource:
             # per-frame files: one frame at a time, windows read ahead by a subset reused
             for entry in self.entries:
                 item = self._kept.pop(entry, None)
-                if item is not None:
-                    self._kept_events[0] -= len(item.events)
-                    if not self._keeping:
-                        yield item
-                        continue
-                else:
-                    img, note = read_image_noted(entry.image_path)  # type: ignore[arg-type]
-                    check_frame_matches(img, self.width, self.height, entry.image_path)
-                    item = FrameWindow(Frame(img, entry.exposure, entry.index, entry.name,
-                                             note), self._file_events(entry, 0))
-                if self._keeping and self._kept_events[0] + len(item.events) <= KEEP_EVENTS:
+                if item is None:
+                    item = FrameWindow(self._read_frame(entry), self._file_events(entry, 0))
+                elif not self._keeping:
+                    yield item
+                    continue
+                if self._keeping and len(item.events) + sum(
+                        len(w.events) for w in self._kept.values()) <= KEEP_EVENTS:
                     self._kept[entry] = item
-                    self._kept_events[0] += len(item.events)
                 yield item
             return
         frames = self._frames()
@@ -309,9 +302,12 @@ class FrameSource:
                 yield Frame(f.image, entry.exposure, f.index, f.name, f.note)
             return
         for entry in self.entries:
-            img, note = read_image_noted(entry.image_path)  # type: ignore[arg-type]
-            check_frame_matches(img, self.width, self.height, entry.image_path)
-            yield Frame(img, entry.exposure, entry.index, entry.name, note)
+            yield self._read_frame(entry)
+
+    def _read_frame(self, entry: FrameEntry) -> Frame:
+        img, note = read_image_noted(entry.image_path)  # type: ignore[arg-type]
+        check_frame_matches(img, self.width, self.height, entry.image_path)
+        return Frame(img, entry.exposure, entry.index, entry.name, note)
 
     def _events(self, margin_us: int) -> Iterator[EventStream]:
         if self.recording is not None:
@@ -335,7 +331,6 @@ class FrameSource:
 
     def close(self) -> None:
         self._kept.clear()
-        self._kept_events[0] = 0
         if self._owns and self.recording is not None:
             self.recording.close()
 

@@ -37,6 +37,7 @@ Both numpy decoders agree event for event with expelliarmus on the shared record
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import sys
@@ -50,7 +51,7 @@ import numpy as np
 from ..errors import FormatError
 from ..events import EventStream
 from .base import ReadOptions
-from .chunked import Chunk, ChunkedRecording, ChunkSummary, time_slice
+from .chunked import IN_ORDER_HINT, Chunk, ChunkedRecording, ChunkSummary, time_slice
 from .evt3_words import Evt3Scan, resume_prefix, scan_evt3
 
 __all__ = [
@@ -847,7 +848,7 @@ class Evt3Recording(ChunkedRecording):
             self._build_index()
         else:
             self._scan = scan
-            self.gathers, self._exact = False, False
+            self.gathers = False
             self._ordinal = np.arange(len(scan.starts), dtype=np.int64)
             self._first, self._last = scan.lo_us, scan.hi_us
             self._resume = [(int(a), int(w)) for a, w in zip(scan.starts, scan.wraps,
@@ -860,8 +861,17 @@ class Evt3Recording(ChunkedRecording):
                 f"skipped (the first is word {first}): a damaged file? the events around them "
                 "may be wrong")
 
-    def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
+    @contextlib.contextmanager
+    def _decoder_errors(self) -> Iterator[None]:
+        """The decoder's errors as one line about the file."""
         try:
+            yield
+        except (OSError, ValueError, RuntimeError) as e:
+            raise FormatError(f"EVT 3.0 decoding failed: {e}", path=self.path,
+                              hint=_DAMAGED) from None
+
+    def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
+        with self._decoder_errors():
             if self._scan is not None:
                 yield from self._decode_segments(start)
                 return
@@ -870,9 +880,6 @@ class Evt3Recording(ChunkedRecording):
                 if k < start:
                     continue
                 yield self._chunk(k, ev, 0)
-        except (OSError, ValueError, RuntimeError) as e:
-            raise FormatError(f"EVT 3.0 decoding failed: {e}", path=self.path,
-                              hint=_DAMAGED) from None
 
     @staticmethod
     def _chunk(k: int, ev, offset_us: int) -> Chunk:
@@ -904,7 +911,7 @@ class Evt3Recording(ChunkedRecording):
                 raw = fh.read(2 * (b - a))
                 if k == start and k > 0:
                     # after the segment's TIME_HIGH, the row and vector column there
-                    prefix = resume_prefix(self.path, offset, a, scan.first_time_word)
+                    prefix = resume_prefix(fh, offset, a, scan.first_time_word)
                     raw = raw[:2] + prefix.tobytes() + raw[2:]
                 ch = self._chunk(k, decoder.feed(raw), offset_us)
                 if len(ch.t):
@@ -913,37 +920,27 @@ class Evt3Recording(ChunkedRecording):
                 yield ch
 
     def _check(self, ch: Chunk, last: int) -> None:
+        """What the index pass checks of a decoded chunk, for a chunk decoded after opening
+        (``last``: the time of the event before it, −1 for none)."""
         t = ch.t
         if int(t[0]) < last or (len(t) > 1 and bool(np.less(t[1:], t[:-1]).any())):
             i = 0 if int(t[0]) < last else int(np.flatnonzero(np.diff(t) < 0)[0]) + 1
             before = last if i == 0 else int(t[i - 1])
             raise FormatError(f"an event at {int(t[i])} µs follows one at {before} µs: it goes "
                               "back in time (corrupt file?)", path=self.path,
-                              hint="camera files are written in time order; re-export the "
-                                   "recording")
-        xmax, ymax = int(ch.x.max()), int(ch.y.max())
-        if xmax >= self.width or ymax >= self.height:
-            axis, value = ("x", xmax) if xmax >= self.width else ("y", ymax)
-            raise FormatError(f"{axis} coordinate {value} is outside the {self.width}x"
-                              f"{self.height} sensor (corrupt file, or wrong sensor size?)",
-                              path=self.path, hint="check `sensor=(W, H)`")
+                              hint=IN_ORDER_HINT)
+        self._check_inside(int(ch.x.max()), int(ch.y.max()))
 
     def _one_chunk(self, k: int) -> Chunk:
-        source = self._decode(k, self._resume[k])
-        try:
+        with contextlib.closing(self._decode(k, self._resume[k])) as source:
             return next(source)
-        finally:
-            source.close()  # type: ignore[attr-defined]
 
     def time_range_us(self) -> tuple[int, int]:
         if self._scan is None:
             return super().time_range_us()
         if self._range is None:
-            source = self._decode(0)
-            try:
+            with contextlib.closing(self._decode(0)) as source:
                 first = next((int(c.t[0]) for c in source if len(c.t)), None)
-            finally:
-                source.close()  # type: ignore[attr-defined]
             last = first
             for k in range(len(self._ordinal) - 1, -1, -1) if first is not None else ():
                 ch = self._one_chunk(k)
@@ -966,11 +963,8 @@ class Evt3Recording(ChunkedRecording):
         if self._scan is None:
             return super().num_events()
         if self._events is None:
-            source = self._decode(0)
-            try:
+            with contextlib.closing(self._decode(0)) as source:
                 self._events = sum(len(c.t) for c in source)
-            finally:
-                source.close()  # type: ignore[attr-defined]
         return self._events
 
     def events(self, start_us: float | None = None, end_us: float | None = None) -> EventStream:
@@ -983,11 +977,8 @@ class Evt3Recording(ChunkedRecording):
             return super().events(start_us, end_us)
         if sel[0] == 0 and sel[-1] == len(self._ordinal) - 1:
             # the whole file: the decoder's one call writes straight into the arrays returned
-            try:
+            with self._decoder_errors():
                 ch = self._chunk(0, self._evt3.decode_file(str(self.path)), 0)
-            except (OSError, ValueError, RuntimeError) as e:
-                raise FormatError(f"EVT 3.0 decoding failed: {e}", path=self.path,
-                                  hint=_DAMAGED) from None
             if len(ch.t):
                 self._check(ch, -1)
             self._events = len(ch.t)
@@ -995,21 +986,13 @@ class Evt3Recording(ChunkedRecording):
             return ev.take(time_slice(ev.t, lo, hi))
         # a long span: each segment's part as it is decoded, joined at the end (the windows
         # kept for requests that move forward would hold the whole span a second time)
-        parts: list[EventStream] = []
-        source = self._decode(int(sel[0]), self._resume[int(sel[0])])
-        try:
+        parts: list[Chunk] = []
+        with contextlib.closing(self._decode(int(sel[0]), self._resume[int(sel[0])])) as source:
             for ch in source:
-                part = EventStream(ch.x, ch.y, ch.t, ch.p, self.width, self.height)
-                part = part.take(time_slice(ch.t, lo, hi))
-                if len(part):
-                    parts.append(part)
+                parts.append(ch)
                 if ch.ordinal >= sel[-1]:
                     break
-        finally:
-            source.close()  # type: ignore[attr-defined]
-        if not parts:
-            return EventStream.empty(self.width, self.height)
-        return parts[0] if len(parts) == 1 else EventStream.concatenate(parts)
+        return self._window(parts, lo, hi)
 
 
 def read_evt3(path: Path, options: ReadOptions) -> Evt3Recording:
