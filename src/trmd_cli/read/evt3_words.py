@@ -8,9 +8,10 @@ the last TIME_HIGH (with the number of times the 24-bit clock wrapped before it)
 ADDR_Y and the vector column — so a decoder started at a TIME_HIGH word, and told the row and
 the vector column there, decodes what one started at the beginning of the file decodes.
 
-The scan here finds those points without decoding: per block of words one shift and one
-comparison (the TIME_HIGH words), the wraps counted on the TIME_HIGH values alone. It costs a
-tenth of a decoding, and is what lets a large file open without being decoded (see
+The scan here finds those points without decoding: per block of words a shift, a comparison
+(where the TIME_HIGH words are) and a minimum and maximum of their values; only a block whose
+values lie a wrap apart is read word by word, to count the wraps as the decoder does. It costs a
+fifth of a decoding, and is what lets a large file open without being decoded (see
 :class:`~trmd_cli.read.prophesee.Evt3Recording`).
 """
 
@@ -100,8 +101,6 @@ def scan_evt3(path: Path, offset: int, words: int, block_words: int | None = Non
             if is_time[i0]:
                 i1 = _last_true(is_time)
                 v0, v1 = int(block[i0]) & 0xFFF, int(block[i1]) & 0xFFF
-                # TIME_HIGH words are 0x8000–0x8FFF: their extremes with the other words
-                # zeroed by a product (several times faster than np.where)
                 # TIME_HIGH words are 0x8000–0x8FFF: moved (mod 2**16) to the bottom, or the
                 # top, of the range of all words, one minimum and one maximum find theirs
                 work = spare[:n]

@@ -73,7 +73,7 @@ DAT_CHUNK_EVENTS = 1 << 20
 #: bytes of EVT 3.0 fed to the evt3 decoder per chunk (files decoded when opened)
 EVT3_CHUNK_BYTES = 4 << 20
 #: EVT 3.0 bodies up to this many bytes are decoded when opened; larger ones open on a scan
-#: of their words (a tenth of a decoding) and are decoded once, as they are read
+#: of their words (a fifth of a decoding) and are decoded once, as they are read
 EVT3_EAGER_BYTES = 32 << 20
 
 #: sensor sizes by the name fragments found in ``% plugin_name`` / ``% sensor_generation``
