@@ -84,23 +84,30 @@ def hot_pixel_mask(events: EventStream, exposure: Exposure | None = None,
     """
     h, w = events.height, events.width
     if window is not None:
+        # sorted per pixel: each fired pixel's events are one run (counts and sums of runs,
+        # over the pixels that fired only)
         _check_window(window, exposure)
-        flat, p = window.pix, window.p
+        fired, starts = window.pixels, window.starts
+        active = np.diff(starts, append=len(window))
+        anet = np.abs(np.add.reduceat(window.p, starts, dtype=np.int64)) if len(starts) \
+            else np.zeros(0, np.int64)
     else:
         ev = events if exposure is None else events.within(exposure)
-        flat, p = ev.y.astype(np.int64) * w + ev.x, ev.p
-    count = np.bincount(flat, minlength=h * w)
-    net = np.bincount(flat, weights=p, minlength=h * w)
-    active = count[count > 0]
+        flat = ev.y.astype(np.int64) * w + ev.x
+        count = np.bincount(flat, minlength=h * w)
+        net = np.bincount(flat, weights=ev.p, minlength=h * w)
+        fired = np.flatnonzero(count)
+        active, anet = count[fired], np.abs(net[fired])
     if active.size < 16:
         return np.zeros((h, w), bool)
     med = np.median(active)
     mad = 1.4826 * np.median(np.abs(active - med)) + 1.0
-    anet = np.abs(net[count > 0])
     nmed = np.median(anet)
     nmad = 1.4826 * np.median(np.abs(anet - nmed)) + 1.0
-    hot = ((count > max(min_count, med + factor * mad))
-           & (np.abs(net) > max(min_count / 2, nmed + factor * nmad)))
+    # a pixel that never fired has count 0 and net 0, below both bounds (each ≥ 1)
+    hot = np.zeros(h * w, bool)
+    hot[fired[(active > max(min_count, med + factor * mad))
+              & (anet > max(min_count / 2, nmed + factor * nmad))]] = True
     return hot.reshape(h, w)
 
 

@@ -409,7 +409,14 @@ def to_uint(image: np.ndarray, bit_depth: int = 8) -> np.ndarray:
     if bit_depth not in (8, 16):
         raise InputError(f"bit depth must be 8 or 16, got {bit_depth}")
     top = 255 if bit_depth == 8 else 65535
-    out = np.clip(np.nan_to_num(image, nan=0.0), 0.0, 1.0) * top + 0.5
+    # fmax drops NaN (→ 0) and −∞; minimum clips +∞ and the rest to 1: nan_to_num and clip
+    # in one pass, and the scaling in place (python numbers keep the image's float type;
+    # half floats cannot hold 65535 · x + 0.5, nor round to 1/255 exactly)
+    image = np.asarray(image)
+    out = np.fmax(image, 0.0, dtype=np.float32 if image.dtype == np.float16 else None)
+    np.minimum(out, 1.0, out=out)
+    out *= top
+    out += 0.5
     return out.astype(np.uint8 if bit_depth == 8 else np.uint16)
 
 
@@ -483,7 +490,8 @@ def _json_default(o):
 
 def clipped_fraction(frames: np.ndarray) -> float:
     """Fraction of values above 1 ([0, 1] intensity): they are clipped when written."""
-    return float((frames > 1.0).mean()) if frames.size else 0.0
+    frames = np.asarray(frames)
+    return np.count_nonzero(frames > 1.0) / frames.size if frames.size else 0.0
 
 
 #: clipping below this fraction of the values is a few specular pixels: not worth a warning
@@ -500,9 +508,13 @@ def clipped_message(fraction: float) -> str | None:
 
 def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: int = 8,
                         compare: bool = False, meta: dict | None = None) -> dict:
-    """Write one result into ``folder`` (which must exist): frame_000.png … frame_{K-1}.png,
-    sharp.png (the middle frame), timestamps.txt (µs on the events' clock), meta.json,
-    [compare.png: blurry | sharp]. Returns this frame's part of the meta.
+    """Write one result into ``folder``: frame_000.png … frame_{K-1}.png, sharp.png (the
+    middle frame), timestamps.txt (µs on the events' clock), meta.json, [compare.png:
+    blurry | sharp]. Returns this frame's part of the meta.
+
+    ``folder`` must exist and be a temporary that the caller commits whole
+    (:func:`atomic_dir`): its files are written in place, not each through a temporary of
+    its own (which cost as much as encoding two of the frames).
 
     Binned events have no clock: timestamps.txt then has a ``fraction`` column (of the
     exposure, 0 = start, 1 = end, as exact floats) instead of ``time_us``, and the meta says
@@ -518,22 +530,26 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
              "clock)" if binned else "# file time_us (event clock)"]
     names = [f"frame_{k:0{width}d}.png" for k in range(len(frames))]
     # all frames to integers in one pass over the stack (the same numbers as frame by frame);
-    # encoding is most of the rest and releases the GIL: two frames at a time, on threads
-    # kept between calls (the files are then written one by one: the same bytes)
+    # encoding and writing are most of the rest and release the GIL: two frames at a time,
+    # on threads kept between calls, each writing the files of its frame
     stack = np.asarray(frames)
     ints = to_uint(stack, bit_depth) if stack.dtype.kind == "f" else stack
-    encoded = list(_encoders().map(lambda name, img: _image_bytes(folder / name, img, bit_depth),
-                                   names, ints))
-    for name, data, t in zip(names, encoded, result.instants_us, strict=True):
-        write_bytes(folder / name, data)
+
+    def encoded(k: int) -> None:
+        data = _image_bytes(folder / names[k], ints[k], bit_depth)
+        _write_in_place(folder / names[k], data)
+        if k == result.middle_index:  # sharp.png: the same bytes, not a second encoding
+            _write_in_place(folder / "sharp.png", data)
+
+    for _ in _encoders().map(encoded, range(len(names))):
+        pass
+    for name, t in zip(names, result.instants_us, strict=True):
         lines.append(f"{name} {fmt_fraction(t) if binned else _fmt_us(t)}")
-    # the middle frame is one of those: its bytes, not a second encoding
-    write_bytes(folder / "sharp.png", encoded[result.middle_index])
-    write_text(folder / "timestamps.txt", "\n".join(lines) + "\n")
+    _write_in_place(folder / "timestamps.txt", ("\n".join(lines) + "\n").encode())
     if compare:
-        write_image(folder / "compare.png", strip([result.blurry, result.middle],
-                                                  ("blurry", "sharp"), keep_float=True),
-                    bit_depth)
+        picture = strip([result.blurry, result.middle], ("blurry", "sharp"), keep_float=True)
+        _write_in_place(folder / "compare.png",
+                        _image_bytes(folder / "compare.png", picture, bit_depth))
     if binned:
         info = {
             "frame": result.name,
@@ -563,8 +579,23 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
             "clipped_fraction": clipped_fraction(frames),
         }
     full = {**(meta or {}), **info}
-    write_json(folder / "meta.json", full)
+    _write_in_place(folder / "meta.json",
+                    (json.dumps(full, indent=2, default=_json_default) + "\n").encode())
     return info
+
+
+def _write_in_place(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` in a folder committed whole: a failure to write is one line
+    (:func:`write_failure`), and the caller's temporary folder is dropped with what it held."""
+    raise_if_received()
+    try:
+        with _OutputFile(path) as fh:
+            fh.write(data)
+    except OSError as e:
+        failure = write_failure(e, path.parent, path)
+        if failure is not None:
+            raise failure from None
+        raise
 
 
 _POOL: dict[int, ThreadPoolExecutor] = {}

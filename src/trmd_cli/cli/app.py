@@ -52,6 +52,9 @@ for _name in COMMANDS:
 
 
 def main() -> None:
+    from ..heap import keep_freed_memory
+
+    keep_freed_memory()  # a frame's temporaries reuse the heap's pages (see trmd_cli.heap)
     app()
 
 

@@ -65,22 +65,46 @@ def seconds_to_us(t: np.ndarray, unit: str | None) -> np.ndarray:
     if unit not in UNIT_SCALE_US:
         raise InputError(f"unknown time unit {unit!r}", hint="use s, ms, us or ns")
     scale = UNIT_SCALE_US[unit]
-    # beyond ±2**62 µs (≈146 000 years) is a unit mistake, and int64 would overflow
-    finite = t[np.isfinite(t)] if t.dtype.kind == "f" else t
-    if len(finite) and max(abs(float(finite.max())), abs(float(finite.min()))) * scale >= 2.0**62:
-        raise InputError(f"times up to {max(abs(float(finite.max())), abs(float(finite.min()))):g}"
-                         f" {unit} are out of range", hint="check `time_unit`")
+    if t.dtype.kind == "f" and len(t):
+        # NaN or ±∞ make the extremes non-finite: one reduction each, no mask (a window's
+        # times are converted every time it is read)
+        low, high = float(t.min()), float(t.max())
+        if not (np.isfinite(low) and np.isfinite(high)):
+            bad = int(np.flatnonzero(~np.isfinite(t))[0])
+            finite = t[np.isfinite(t)]
+            # beyond ±2**62 µs the unit is wrong: say so first, as for finite times
+            if len(finite) and max(abs(float(finite.max())),
+                                   abs(float(finite.min()))) * scale >= 2.0**62:
+                _out_of_range(finite, unit)
+            raise InputError(f"event {bad} has a non-finite time ({t[bad]})",
+                             hint="remove or repair the broken events")
+        if max(abs(low), abs(high)) * scale >= 2.0**62:
+            _out_of_range(t, unit)
+    elif len(t) and max(abs(float(t.max())), abs(float(t.min()))) * scale >= 2.0**62:
+        _out_of_range(t, unit)
     if t.dtype.kind in "iu":
         t64 = t.astype(np.int64)
         return t64 // 1000 if unit == "ns" else t64 * int(scale)
-    if len(t) and not np.isfinite(t).all():
-        bad = int(np.flatnonzero(~np.isfinite(t))[0])
-        raise InputError(f"event {bad} has a non-finite time ({t[bad]})",
-                         hint="remove or repair the broken events")
-    t = t.astype(np.float64)
+    t = t.astype(np.float64, copy=False)
     whole = np.floor(t)
-    return (whole.astype(np.int64) * np.int64(round(scale)) if scale >= 1 else
-            np.rint(whole * scale).astype(np.int64)) + np.rint((t - whole) * scale).astype(np.int64)
+    frac = np.subtract(t, whole)
+    frac *= scale
+    np.rint(frac, out=frac)
+    if scale >= 1:
+        out = whole.astype(np.int64)
+        out *= np.int64(round(scale))
+    else:
+        whole *= scale
+        out = np.rint(whole, out=whole).astype(np.int64)
+    out += frac.astype(np.int64)
+    return out
+
+
+def _out_of_range(t: np.ndarray, unit: str) -> None:
+    """Refuse times beyond ±2**62 µs (≈146 000 years): a unit mistake, and int64 would
+    overflow."""
+    top = max(abs(float(t.max())), abs(float(t.min())))
+    raise InputError(f"times up to {top:g} {unit} are out of range", hint="check `time_unit`")
 
 
 def _load(path: Path, names: list[str] | None = None) -> dict[str, np.ndarray]:
