@@ -301,3 +301,16 @@ def test_pixel_order_is_the_stable_sort_by_pixel(n_pix):
         flat[: n // 3] = flat[0] if n else 0  # many ties: their time order must be kept
         np.testing.assert_array_equal(_pixel_order(flat, n_pix),
                                       np.argsort(flat, kind="stable"))
+
+
+def test_the_hot_pixel_statistics_are_numpys_medians():
+    """The median and the median absolute deviation of whole counts from their histogram equal
+    numpy's (odd and even sizes, half-integer medians, wide ranges)."""
+    from trmd_cli.edi import _median_and_deviation
+
+    rng = np.random.default_rng(7)
+    cases = [rng.integers(0, hi, n) for n in (1, 2, 3, 16, 17, 1000) for hi in (1, 3, 40, 5000)]
+    cases += [rng.poisson(2.5, 999), np.array([0, 10**9]), np.array([5, 5, 5, 6])]
+    for counts in cases:
+        med = np.median(counts)
+        assert _median_and_deviation(counts) == (med, np.median(np.abs(counts - med)))

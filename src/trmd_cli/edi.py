@@ -97,18 +97,43 @@ def hot_pixel_mask(events: EventStream, exposure: Exposure | None = None,
         count = np.bincount(flat, minlength=h * w)
         net = np.bincount(flat, weights=ev.p, minlength=h * w)
         fired = np.flatnonzero(count)
-        active, anet = count[fired], np.abs(net[fired])
+        active, anet = count[fired], np.abs(net[fired]).astype(np.int64)  # whole numbers
     if active.size < 16:
         return np.zeros((h, w), bool)
-    med = np.median(active)
-    mad = 1.4826 * np.median(np.abs(active - med)) + 1.0
-    nmed = np.median(anet)
-    nmad = 1.4826 * np.median(np.abs(anet - nmed)) + 1.0
+    med, mad = _median_and_deviation(active)
+    nmed, nmad = _median_and_deviation(anet)
+    mad, nmad = 1.4826 * mad + 1.0, 1.4826 * nmad + 1.0
     # a pixel that never fired has count 0 and net 0, below both bounds (each ≥ 1)
     hot = np.zeros(h * w, bool)
     hot[fired[(active > max(min_count, med + factor * mad))
               & (anet > max(min_count / 2, nmed + factor * nmad))]] = True
     return hot.reshape(h, w)
+
+
+def _median_and_deviation(counts: np.ndarray) -> tuple[float, float]:
+    """``np.median(counts)`` and the median absolute deviation from it, exactly, for counts
+    (whole numbers ≥ 0) spanning a small range: by a histogram instead of two partitions
+    (several times faster for a window's tens of thousands of pixels)."""
+    top = int(counts.max())
+    if top > 4 * len(counts) + (1 << 16):  # a histogram wider than the data: partition
+        med = float(np.median(counts))
+        return med, float(np.median(np.abs(counts - med)))
+    hist = np.bincount(counts, minlength=top + 1)
+    med2 = _twice_median(hist, len(counts))
+    # deviations in halves: |2·count − 2·median| are whole numbers, their histogram is the
+    # counts' histogram folded at 2·median
+    twice = np.abs(2 * np.arange(top + 1) - med2)
+    dev = np.bincount(twice, weights=hist, minlength=int(twice.max()) + 1).astype(np.int64)
+    return med2 / 2, _twice_median(dev, len(counts)) / 4
+
+
+def _twice_median(hist: np.ndarray, n: int) -> int:
+    """Twice the median of ``n`` whole numbers given by their histogram (value → how many):
+    the sum of the two middle values (the middle value twice for odd ``n``)."""
+    cum = np.cumsum(hist)
+    low = int(np.searchsorted(cum, (n - 1) // 2, side="right"))
+    high = int(np.searchsorted(cum, n // 2, side="right"))
+    return low + high
 
 
 @dataclass(frozen=True, eq=False)
