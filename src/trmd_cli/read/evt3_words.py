@@ -131,7 +131,7 @@ def scan_evt3(path: Path, offset: int, words: int, block_words: int | None = Non
             # indexing is several times slower than its arithmetic); `block` is free now
             np.right_shift(_UNDEFINED_BITS, t, out=block)
             np.bitwise_and(block, 1, out=block)
-            if block.any():
+            if block.max():  # (a reduction numpy vectorises, unlike any() on integers)
                 bad = np.flatnonzero(block)
                 undefined += len(bad)
                 first_undefined = start + int(bad[0]) if first_undefined < 0 else first_undefined
