@@ -130,3 +130,35 @@ def test_a_full_disk_in_a_result_folder_is_one_line(tmp_path, monkeypatch):
     with pytest.raises(WriteError, match="No space left") as caught:
         write.write_result_folder(tmp_path, _result())
     assert caught.value.path == str(tmp_path)
+
+
+def test_a_failed_frame_leaves_no_file_behind_it(tmp_path, monkeypatch):
+    """One frame's write fails while the others are still being written on the encoder
+    threads: the failure is raised only once they all ended, so the caller's folder, removed
+    then, is not written into afterwards."""
+    import threading
+    import time
+
+    from trmd_cli import write
+
+    real = write._write_in_place
+    ended: list[str] = []
+
+    def slow_or_full(path, data):
+        if path.name == "frame_000.png":
+            raise OSError(28, os.strerror(28))  # ENOSPC
+        if threading.current_thread() is not threading.main_thread():
+            time.sleep(0.02)
+        real(path, data)
+        ended.append(path.name)
+
+    monkeypatch.setattr(write, "_write_in_place", slow_or_full)
+    with pytest.raises(OSError):
+        write.write_result_folder(tmp_path, _result())
+    names = sorted(p.name for p in tmp_path.iterdir())
+    # whatever was started is complete: every frame but the failed one, and nothing after
+    assert "frame_000.png" not in names
+    assert sorted(n for n in ended if n.startswith("frame_")) == [
+        n for n in names if n.startswith("frame_")]
+    time.sleep(0.1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == names

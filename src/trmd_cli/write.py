@@ -19,6 +19,7 @@ import shutil
 import tempfile
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait as futures_wait
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -541,8 +542,17 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
         if k == result.middle_index:  # sharp.png: the same bytes, not a second encoding
             _write_in_place(folder / "sharp.png", data)
 
-    for _ in _encoders().map(encoded, range(len(names))):
-        pass
+    jobs = [_encoders().submit(encoded, k) for k in range(len(names))]
+    # every job ends before a failure (or an interrupt while waiting) goes up: the caller then
+    # removes the folder, and no file of a job still running may appear in it afterwards
+    try:
+        futures_wait(jobs)
+    finally:
+        for job in jobs:
+            job.cancel()
+        futures_wait(jobs)
+    for job in jobs:
+        job.result()
     for name, t in zip(names, result.instants_us, strict=True):
         lines.append(f"{name} {fmt_fraction(t) if binned else _fmt_us(t)}")
     _write_in_place(folder / "timestamps.txt", ("\n".join(lines) + "\n").encode())
