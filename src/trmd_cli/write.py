@@ -455,7 +455,12 @@ def write_image(path: str | Path, image: np.ndarray, bit_depth: int = 8) -> Path
 
 
 def write_json(path: str | Path, obj) -> Path:
-    return write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
+    return write_text(path, _json_text(obj))
+
+
+def _json_text(obj) -> str:
+    """``obj`` as the JSON trmd writes: indented, numpy values as numbers, a final newline."""
+    return json.dumps(obj, indent=2, default=_json_default) + "\n"
 
 
 def write_text(path: str | Path, text: str) -> Path:
@@ -547,10 +552,11 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
     # removes the folder, and no file of a job still running may appear in it afterwards
     try:
         futures_wait(jobs)
-    finally:
+    except BaseException:
         for job in jobs:
             job.cancel()
         futures_wait(jobs)
+        raise
     for job in jobs:
         job.result()
     for name, t in zip(names, result.instants_us, strict=True):
@@ -572,7 +578,7 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
             # net counts per pixel and bin: the events are at least this many
             "abs_count": result.num_events,
             "passthrough": result.passthrough,
-            "clipped_fraction": clipped_fraction(frames),
+            "clipped_fraction": clipped_fraction(stack),
         }
     else:
         info = {
@@ -586,11 +592,10 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
             "events": result.num_events,
             "hot_pixels": result.estimate.hot_pixels,
             "passthrough": result.passthrough,
-            "clipped_fraction": clipped_fraction(frames),
+            "clipped_fraction": clipped_fraction(stack),
         }
     full = {**(meta or {}), **info}
-    _write_in_place(folder / "meta.json",
-                    (json.dumps(full, indent=2, default=_json_default) + "\n").encode())
+    _write_in_place(folder / "meta.json", _json_text(full).encode())
     return info
 
 

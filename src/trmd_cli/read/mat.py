@@ -65,23 +65,18 @@ def seconds_to_us(t: np.ndarray, unit: str | None) -> np.ndarray:
     if unit not in UNIT_SCALE_US:
         raise InputError(f"unknown time unit {unit!r}", hint="use s, ms, us or ns")
     scale = UNIT_SCALE_US[unit]
-    if t.dtype.kind == "f" and len(t):
-        # NaN or ±∞ make the extremes non-finite: one reduction each, no mask (a window's
-        # times are converted every time it is read)
+    if len(t):
+        # one reduction each, no mask (a window's times are converted every time it is
+        # read): NaN or ±∞ make the extremes non-finite
         low, high = float(t.min()), float(t.max())
         if not (np.isfinite(low) and np.isfinite(high)):
-            bad = int(np.flatnonzero(~np.isfinite(t))[0])
             finite = t[np.isfinite(t)]
-            # beyond ±2**62 µs the unit is wrong: say so first, as for finite times
-            if len(finite) and max(abs(float(finite.max())),
-                                   abs(float(finite.min()))) * scale >= 2.0**62:
-                _out_of_range(finite, unit)
+            if len(finite):  # a unit mistake is said first, as for finite times
+                _refuse_out_of_range(float(finite.min()), float(finite.max()), unit, scale)
+            bad = int(np.flatnonzero(~np.isfinite(t))[0])
             raise InputError(f"event {bad} has a non-finite time ({t[bad]})",
                              hint="remove or repair the broken events")
-        if max(abs(low), abs(high)) * scale >= 2.0**62:
-            _out_of_range(t, unit)
-    elif len(t) and max(abs(float(t.max())), abs(float(t.min()))) * scale >= 2.0**62:
-        _out_of_range(t, unit)
+        _refuse_out_of_range(low, high, unit, scale)
     if t.dtype.kind in "iu":
         t64 = t.astype(np.int64)
         return t64 // 1000 if unit == "ns" else t64 * int(scale)
@@ -100,11 +95,12 @@ def seconds_to_us(t: np.ndarray, unit: str | None) -> np.ndarray:
     return out
 
 
-def _out_of_range(t: np.ndarray, unit: str) -> None:
+def _refuse_out_of_range(low: float, high: float, unit: str, scale: float) -> None:
     """Refuse times beyond ±2**62 µs (≈146 000 years): a unit mistake, and int64 would
     overflow."""
-    top = max(abs(float(t.max())), abs(float(t.min())))
-    raise InputError(f"times up to {top:g} {unit} are out of range", hint="check `time_unit`")
+    top = max(abs(low), abs(high))
+    if top * scale >= 2.0**62:
+        raise InputError(f"times up to {top:g} {unit} are out of range", hint="check `time_unit`")
 
 
 def _load(path: Path, names: list[str] | None = None) -> dict[str, np.ndarray]:
