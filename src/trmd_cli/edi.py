@@ -346,12 +346,16 @@ class EdiEvents:
         # the event's own time: an interval starts at the event, the step happens at it; an
         # event counts from the first instant at or after it. Counting the instants before it
         # is searchsorted(side="left") done as K comparisons, cheaper for a few instants
-        slot = np.zeros(self.count, np.int64)
+        # (counted in one byte where K allows: an eighth of the memory traffic of int64)
+        slot = np.zeros(self.count, np.uint8 if k < 255 else np.int64)
         for f in sorted_fr:
             slot += self.time > f
         # signed steps per (sorted instant, fired pixel), summed over the instants: whole
         # numbers, so exact in any order
-        steps = np.bincount(slot * u + group, weights=self.step, minlength=(k + 1) * u)
+        index = slot.astype(np.int64)
+        index *= u
+        index += group
+        steps = np.bincount(index, weights=self.step, minlength=(k + 1) * u)
         s_sorted = cumsum_rows(steps.reshape(k + 1, u)[:k].astype(np.int64))
         out = np.empty((k, u), np.int64)
         out[order] = s_sorted

