@@ -12,6 +12,8 @@ from trmd_cli.deconv import (
     NOISE_SCALE,
     BlurOperator,
     DeconvConfig,
+    change_agreement,
+    change_of_log,
     data_weights,
     deconvolve,
     guard_weights,
@@ -26,7 +28,7 @@ from trmd_cli.motion import GlobalMotion, SampledMotion
 from trmd_cli.oracle import TruePathMethod
 from trmd_cli.simulate import MotionRanges, SensorConfig, make_sample
 
-from .helpers.data import texture
+from .helpers.data import shifted, texture
 
 W, H = 80, 60
 MOTION = GlobalMotion((10.0, 4.0), (8.0, -6.0), 0.02, 0.01, ((W - 1) / 2, (H - 1) / 2))
@@ -212,6 +214,87 @@ def test_independent_mover_falls_back_to_edi():
     assert _seq(mot.frames, s.sharp) >= _seq(edi.frames, s.sharp) - 0.1
     assert psnr(true.frames[3], s.sharp[3]) > p_edi + 1.5
     assert _seq(true.frames, s.sharp) > _seq(edi.frames, s.sharp) + 1.5
+
+
+def test_change_of_log_counts_the_events():
+    """c times each pixel's signed event count in the window; a hot pixel's and the events
+    outside the window left out."""
+    ev = EventStream(np.array([1, 1, 1, 3, 0, 2], np.uint16),
+                     np.array([0, 0, 0, 1, 1, 0], np.uint16),
+                     np.array([5, 6, 7, 8, 9, 50], np.int64),
+                     np.array([1, 1, -1, -1, 1, 1], np.int8), 4, 2)
+    hot = np.zeros((2, 4), bool)
+    hot[1, 0] = True
+    got = change_of_log(ev, Exposure(0, 20), 4, 2, 0.25, hot)
+    expected = np.zeros((2, 4), np.float32)
+    expected[0, 1] = 0.25  # +1 +1 −1
+    expected[1, 3] = -0.25
+    assert np.array_equal(got, expected)
+
+
+class _Ends:
+    """Stands for a deconvolution: its frames at the exposure's two ends."""
+
+    def __init__(self, first, last):
+        self._ends = np.stack([first, last]).astype(np.float32)
+
+    def frames(self, fractions):
+        assert list(fractions) == [0.0, 1.0]
+        return self._ends
+
+
+def test_change_agreement_where_the_motion_predicts_the_events():
+    """Frames at the ends whose log ratio is exactly the events' change: weight 1. A block
+    whose predicted change is 0.3 off (1.5 thresholds of 0.2): weight 0 inside it, 1 well
+    away from it (more than three σ beyond its edge)."""
+    rng = np.random.default_rng(5)
+    first = rng.uniform(0.2, 0.8, (60, 80))
+    change = rng.normal(0.0, 0.3, (60, 80)).astype(np.float32)
+    last = (first + 0.02) * np.exp(change) - 0.02  # the ±0.02 of the log's offset
+    assert change_agreement(_Ends(first, last), change, 0.2).min() > 0.999
+    wrong = change.copy()
+    wrong[20:40, 30:50] += 0.3
+    w = change_agreement(_Ends(first, last), wrong, 0.2)
+    assert w[25:35, 35:45].max() == 0.0
+    far = np.ones_like(w, bool)
+    far[6:54, 16:64] = False
+    assert w[far].min() > 0.99
+
+
+def test_change_agreement_rejects_a_motion_off_by_a_pixel_or_two():
+    """A texture translated 6 px over the exposure, its events' change whole thresholds
+    (c = 0.2): frames carried along the right motion keep weight 1 everywhere; along 9 px
+    (1.5 px off at each end) nearly nothing is kept (measured 0.02 on the interior), though
+    the misprediction is ± the texture's gradient and its mean over a neighbourhood is near
+    zero."""
+    img = texture(60, 80, seed=3)
+
+    def log(a):
+        return np.log(np.maximum(a, 0.0) + 0.02)
+
+    change = log(shifted(img, 3.0)) - log(shifted(img, -3.0))
+    change = (np.round(change / 0.2) * 0.2).astype(np.float32)
+    right = change_agreement(_Ends(shifted(img, -3.0), shifted(img, 3.0)), change, 0.2)
+    assert right[8:-8, 8:-8].min() > 0.99
+    off = change_agreement(_Ends(shifted(img, -4.5), shifted(img, 4.5)), change, 0.2)
+    assert off[8:-8, 8:-8].mean() < 0.1
+
+
+def test_background_motion_when_the_estimate_follows_a_mover():
+    """A foreground patch moving on its own, where the global estimate explains less than
+    half of the frame: the motion of the tiles that move together is deconvolved where it
+    predicts the events (measured: EDI 29.20 / 28.59, motion 31.67 / 31.73 dB, middle /
+    sequence; with EDI's frames alone before)."""
+    motion = MotionRanges(translation_px=14, rotation_deg=0.5, scale=0.01, perspective=0,
+                          curvature=0.2, foreground_prob=1.0, max_layers=1,
+                          layer_translation_px=30, layer_size=(0.3, 0.45))
+    s = make_sample(texture(300, 400, seed=6), size=(160, 120), rng=np.random.default_rng(6),
+                    motion=motion, sensor=SensorConfig.clean(0.2), read_noise=0.003)
+    edi = EdiMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
+    mot = MotionMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
+    assert any("tiles that move together" in note for note in mot.notes), mot.notes
+    assert psnr(mot.frames[3], s.sharp[3]) > psnr(edi.frames[3], s.sharp[3]) + 1.5
+    assert _seq(mot.frames, s.sharp) > _seq(edi.frames, s.sharp) + 2
 
 
 def test_exact_motion_is_trusted_without_movers():

@@ -1,0 +1,202 @@
+"""The background's motion where something else moves on its own: tiles vote for a velocity.
+
+One global contrast maximisation over all of an exposure's events can follow a foreground
+object instead of the camera: a mover that sweeps fast over a textured patch fires dense
+events, and its sharpening outweighs the background's even where it covers a tenth of the
+frame (the rotation, zoom and acceleration then bend to fit it). Each tile of a coarse grid
+estimates its own velocity on its own events instead; the velocity most tiles share is the
+background's, and the tiles that disagree are left out of a second, global estimate.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..events import EventStream, Exposure
+from .cmax import MIN_EVENTS, MotionSearch, _ascend, _Level, _start, estimate_motion
+from .model import GlobalMotion
+
+__all__ = ["tile_velocities", "outvoted_tiles", "background_motion", "follows_votes",
+           "AGREE_PX", "GRID"]
+
+#: tiles across × down
+GRID = (4, 3)
+#: two tiles' velocities (pixels per exposure) this close are the same motion
+AGREE_PX = 6.0
+#: least events for a tile to vote
+TILE_EVENTS = 300
+#: events per tile used to vote (a fixed random subset when there are more)
+TILE_MAX_EVENTS = 4000
+#: about this many of them rank the first, coarsest velocity grid
+ROUGH_EVENTS = 1000
+
+
+def tile_velocities(events: EventStream, exposure: Exposure,
+                    hot_mask: np.ndarray | None = None, grid: tuple[int, int] = GRID,
+                    search: MotionSearch | None = None
+                    ) -> dict[tuple[int, int], tuple[float, float]]:
+    """Each tile's own velocity, pixels per exposure: ``{(column, row): (vx, vy)}`` for the
+    tiles with at least :data:`TILE_EVENTS` events (the others do not vote).
+
+    The velocity grid of :func:`~trmd_cli.motion.estimate_motion` on the tile's events, each
+    grid's translations scored at once (:func:`_translation_gains`): step 8 on an 8× coarser
+    image (from about :data:`ROUGH_EVENTS` of them), then the step-4 neighbours of the best
+    three on 4× (on tiles under 80 px, half those steps and scales; under 40, a quarter);
+    then the velocity ascended at full resolution on the tile's box.
+    """
+    search = MotionSearch() if search is None else search
+    ev = events.within(exposure)
+    w, h = events.width, events.height
+    x, y = ev.x.astype(np.float64), ev.y.astype(np.float64)
+    u = (ev.t - exposure.start_us).astype(np.float64) / exposure.duration_us
+    if hot_mask is not None and hot_mask.any() and len(x):
+        keep = ~hot_mask[ev.y, ev.x]
+        x, y, u = x[keep], y[keep], u[keep]
+    centre, radius = ((w - 1) / 2, (h - 1) / 2), 0.5 * max(w, h)
+    cols, rows = grid
+    tile = np.minimum((x * cols / w).astype(np.int64), cols - 1) * rows + \
+        np.minimum((y * rows / h).astype(np.int64), rows - 1)
+    order = np.argsort(tile, kind="stable")
+    bounds = np.searchsorted(tile[order], np.arange(cols * rows + 1))
+    vmax = search.max_velocity_px
+    # the first grid's cells: 8 px on tiles of ≥ 80 px (ten cells or more a side), finer on
+    # smaller ones, where 8 px cells blur a tile's texture into a few values
+    side = min(w / cols, h / rows)
+    scale = 8.0 if side >= 80 else 4.0 if side >= 40 else 2.0
+    out: dict[tuple[int, int], tuple[float, float]] = {}
+    rng = np.random.default_rng(search.seed)
+    for k in range(cols * rows):
+        idx = order[bounds[k]:bounds[k + 1]]
+        if len(idx) < TILE_EVENTS:
+            continue
+        if len(idx) > TILE_MAX_EVENTS:
+            idx = np.sort(rng.choice(idx, TILE_MAX_EVENTS, replace=False))
+        tau = u[idx] - 0.5
+        steps = np.arange(-vmax, vmax + 1e-9, scale)
+        cands = np.array([(a, b) for a in steps for b in steps])
+        # the coarsest grid from about ROUGH_EVENTS events: its cells need few to rank
+        few = slice(None, None, max(len(idx) // ROUGH_EVENTS, 1))
+        gains = _translation_gains(x[idx][few], y[idx][few], tau[few], cands, w, h, scale)
+        seeds = cands[np.argsort(-gains, kind="stable")[:3]]
+        half = scale / 2
+        near = np.array(sorted({(a + dx, b + dy) for a, b in seeds.tolist()
+                                for dx in (-half, 0.0, half) for dy in (-half, 0.0, half)}))
+        gains = _translation_gains(x[idx], y[idx], tau, near, w, h, half)
+        vx, vy = near[int(np.argmax(gains))]
+        # then the velocity alone, ascended at full resolution: the grids' cells bias a small
+        # tile's optimum towards slow motion
+        # on the tile's box widened by its events' reach, not the whole sensor: the same
+        # image of warped events there, a tenth of the pixels to blur
+        reach = 0.5 * np.hypot(vx, vy) + 2 * half + 4.0
+        x0 = max(int(x[idx].min() - reach), 0)
+        y0 = max(int(y[idx].min() - reach), 0)
+        bw = min(int(x[idx].max() + reach) + 1, w) - x0
+        bh = min(int(y[idx].max() + reach) + 1, h) - y0
+        fine = _Level(x[idx] - x0, y[idx] - y0, u[idx], bw, bh, 1.0, centre, radius)
+        q = _ascend(fine, _start(vx, vy), 2, (0.0, 0.0, 0.0), 10, 0.5)
+        out[(k // rows, k % rows)] = (float(q[0]), float(q[1]))
+    return out
+
+
+def outvoted_tiles(votes: dict[tuple[int, int], tuple[float, float]], width: int, height: int,
+                   grid: tuple[int, int] = GRID, agree_px: float = AGREE_PX) -> np.ndarray | None:
+    """(H, W) bool: the tiles whose velocity is not the one most tiles share (within
+    ``agree_px``; ties: the first tile in column order). None when every voting tile agrees,
+    or fewer than three voted (nothing to tell apart)."""
+    if len(votes) < 3:
+        return None
+    keys = list(votes)
+    v = np.array([votes[k] for k in keys])
+    near = np.hypot(v[:, None, 0] - v[None, :, 0], v[:, None, 1] - v[None, :, 1]) <= agree_px
+    best = int(np.argmax(near.sum(1)))
+    if near[best].all():
+        return None
+    cols, rows = grid
+    mask = np.zeros((height, width), bool)
+    for (i, j), agrees in zip(keys, near[best], strict=True):
+        if not agrees:
+            mask[j * height // rows:(j + 1) * height // rows,
+                 i * width // cols:(i + 1) * width // cols] = True
+    return mask
+
+
+def background_motion(events: EventStream, exposure: Exposure,
+                      hot_mask: np.ndarray | None = None,
+                      search: MotionSearch | None = None) -> GlobalMotion | None:
+    """The global motion of the events of the tiles that move with the majority
+    (:func:`tile_velocities`, :func:`outvoted_tiles`), by
+    :func:`~trmd_cli.motion.estimate_motion`; None when every tile agrees (the first estimate
+    already is the background's), the kept tiles hold fewer than
+    :data:`~trmd_cli.motion.MIN_EVENTS` events, or the estimate does not move those tiles as
+    they voted (see :func:`follows_votes`)."""
+    w, h = events.width, events.height
+    votes = tile_velocities(events, exposure, hot_mask, search=search)
+    out = outvoted_tiles(votes, w, h)
+    if out is None:
+        return None
+    ignore = out if hot_mask is None else (out | hot_mask)
+    motion = estimate_motion(events, exposure, ignore, search)
+    if motion.events < MIN_EVENTS or not follows_votes(motion, votes, out, w, h):
+        return None
+    return motion
+
+
+def follows_votes(motion: GlobalMotion, votes: dict[tuple[int, int], tuple[float, float]],
+                  outvoted: np.ndarray, width: int, height: int,
+                  grid: tuple[int, int] = GRID, agree_px: float = AGREE_PX) -> bool:
+    """Whether ``motion`` moves the majority's tiles (those not ``outvoted``, (H, W) bool) as
+    they voted: its displacement over the exposure at their centres is within twice
+    ``agree_px`` of their velocities, in the median (each of them is within ``agree_px`` of
+    one tile's, so within twice that of each other's). The estimate on their events can still
+    bend to a mover's events left inside them (on a noisy scene whose tiles agreed on a few
+    pixels, rotation and zoom went to their bounds and the motion was 12 px off the camera's
+    path at both ends, 18 px off the votes in the median)."""
+    cols, rows = grid
+    keys = [k for k in votes
+            if not outvoted[(2 * k[1] + 1) * height // (2 * rows),
+                            (2 * k[0] + 1) * width // (2 * cols)]]
+    if not keys:
+        return False
+    cx = np.array([(i + 0.5) * width / cols for i, _ in keys])
+    cy = np.array([(j + 0.5) * height / rows for _, j in keys])
+    x0, y0 = motion.positions(0.0, cx, cy)
+    x1, y1 = motion.positions(1.0, cx, cy)
+    voted = np.array([votes[k] for k in keys])
+    off = np.hypot(x1 - x0 - voted[:, 0], y1 - y0 - voted[:, 1])
+    return bool(np.median(off) <= 2.0 * agree_px)
+
+
+def _translation_gains(x: np.ndarray, y: np.ndarray, tau: np.ndarray, velocities: np.ndarray,
+                       width: int, height: int, scale: float) -> np.ndarray:
+    """The contrast of the events ``(x, y)`` (pixels; ``tau``: exposure fraction − 0.5)
+    carried to the middle by each pure translation of ``velocities`` (K, 2) (pixels per
+    exposure), all at once: (K,) variances of their images of warped events on a grid
+    ``scale`` times coarser, bilinear votes blurred by a σ = 1 cell Gaussian (as
+    :class:`~trmd_cli.motion.cmax._Level` makes them; the unwarped image's variance, the
+    same for every candidate, is left out)."""
+    from scipy.ndimage import gaussian_filter
+
+    w, h = int(np.ceil(width / scale)), int(np.ceil(height / scale))
+    stride, rows = w + 4, h + 4
+    k = len(velocities)
+    f32 = np.float32
+    v = (velocities / scale).astype(f32)
+    xs = (x / scale).astype(f32)[None, :] - v[:, :1] * tau.astype(f32)[None, :]
+    ys = (y / scale).astype(f32)[None, :] - v[:, 1:] * tau.astype(f32)[None, :]
+    # clipped into a two-cell margin, cropped away: an event carried off the grid votes
+    # nowhere that counts (see cmax._Taps)
+    np.clip(xs, -2.0, w + 0.5, out=xs)
+    np.clip(ys, -2.0, h + 0.5, out=ys)
+    x0, y0 = np.floor(xs), np.floor(ys)
+    fx, fy = xs - x0, ys - y0
+    gx, gy = 1 - fx, 1 - fy
+    base = (np.arange(k)[:, None] * rows + y0.astype(np.intp) + 2) * stride + \
+        x0.astype(np.intp) + 2
+    acc = np.bincount(np.concatenate([base.ravel(), (base + 1).ravel(),
+                                      (base + stride).ravel(), (base + stride + 1).ravel()]),
+                      np.concatenate([(gx * gy).ravel(), (fx * gy).ravel(),
+                                      (gx * fy).ravel(), (fx * fy).ravel()]),
+                      minlength=k * rows * stride)
+    img = acc.reshape(k, rows, stride)[:, 2:-2, 2:-2].astype(np.float32)
+    img = gaussian_filter(img, (0, 1.0, 1.0), mode="constant", truncate=4.0)
+    return img.reshape(k, -1).var(axis=1).astype(np.float64)
