@@ -295,6 +295,12 @@ def test_background_motion_when_the_estimate_follows_a_mover():
     assert any("tiles that move together" in note for note in mot.notes), mot.notes
     assert psnr(mot.frames[3], s.sharp[3]) > psnr(edi.frames[3], s.sharp[3]) + 1.5
     assert _seq(mot.frames, s.sharp) > _seq(edi.frames, s.sharp) + 2
+    # a colour frame takes the same way, its unscaled channel as well restored
+    rgb = np.stack([s.blurry, 0.9 * s.blurry, 0.8 * s.blurry], -1).astype(np.float32)
+    col = MotionMethod(contrast=s.contrast)(rgb, s.events, s.exposure)
+    assert col.frames.shape == (7, 120, 160, 3)
+    assert "tiles that move together" in col.notes[0], col.notes
+    assert psnr(col.frames[3, ..., 0], s.sharp[3]) > psnr(edi.frames[3], s.sharp[3]) + 1.5
 
 
 def test_exact_motion_is_trusted_without_movers():
