@@ -798,8 +798,8 @@ def _background_deblur(blurry: np.ndarray, events, exposure, fractions, edi_fram
 
     On eight noise-free simulated exposures with a foreground layer moving on its own
     (``bench/bench_mover_guard.py``), the global estimate followed the layer in five; on those
-    the middle frame went from EDI's to +0.2 … +3.6 dB above it (one stayed EDI's), and the
-    eight from +1.1 to +1.8 dB over EDI on average.
+    the middle frame went from EDI's to +0.8 … +3.6 dB above it (one stayed EDI's), and the
+    eight from +1.1 to +1.9 dB over EDI on average.
     """
     from .motion import MIN_EVENTS
     from .motion.tiles import background_motion

@@ -360,7 +360,8 @@ def _subset(n: int, k: int, seed: int) -> np.ndarray:
 
 def estimate_motion(events: EventStream, exposure: Exposure,
                     hot_mask: np.ndarray | None = None,
-                    search: MotionSearch | None = None) -> GlobalMotion:
+                    search: MotionSearch | None = None,
+                    start: tuple[float, float] | None = None) -> GlobalMotion:
     """The global motion of the exposure's events by contrast maximisation.
 
     Args:
@@ -368,6 +369,8 @@ def estimate_motion(events: EventStream, exposure: Exposure,
         exposure: the window, µs.
         hot_mask: (H, W) bool pixels whose events are ignored.
         search: search ranges (default :class:`MotionSearch`).
+        start: a velocity (pixels per exposure) known to be near the answer: the search
+            starts there instead of on the velocity grid.
     Returns:
         the motion, with ``confidence`` its contrast gain at full resolution over no motion;
         zero motion with confidence 0 when the window holds fewer than :data:`MIN_EVENTS`.
@@ -401,16 +404,19 @@ def estimate_motion(events: EventStream, exposure: Exposure,
     # the velocity grid, coarse to fine: every step-8 velocity on an 8× coarser image, then
     # the step-4 neighbours of the best few on a 4× coarser one
     vmax = search.max_velocity_px
-    rough = _Level(x[few], y[few], u[few], w, h, 8.0, centre, radius)
     coarse = _Level(x[few], y[few], u[few], w, h, 4.0, centre, radius)
-    grid = np.arange(-vmax, vmax + 1e-9, rough.scale)
-    seeds = sorted(((rough.gain(_start(vx, vy)), vx, vy)
-                    for vx in grid for vy in grid), reverse=True)[:3]
-    near = {(vx + dx, vy + dy) for _, vx, vy in seeds
-            for dx in (-coarse.scale, 0.0, coarse.scale)
-            for dy in (-coarse.scale, 0.0, coarse.scale)}
-    best = sorted(((coarse.gain(_start(vx, vy)), vx, vy)
-                   for vx, vy in sorted(near)), reverse=True)
+    if start is not None:
+        best = [(0.0, float(start[0]), float(start[1]))]
+    else:
+        rough = _Level(x[few], y[few], u[few], w, h, 8.0, centre, radius)
+        grid = np.arange(-vmax, vmax + 1e-9, rough.scale)
+        seeds = sorted(((rough.gain(_start(vx, vy)), vx, vy)
+                        for vx in grid for vy in grid), reverse=True)[:3]
+        near = {(vx + dx, vy + dy) for _, vx, vy in seeds
+                for dx in (-coarse.scale, 0.0, coarse.scale)
+                for dy in (-coarse.scale, 0.0, coarse.scale)}
+        best = sorted(((coarse.gain(_start(vx, vy)), vx, vy)
+                       for vx, vy in sorted(near)), reverse=True)
     candidates = []
     for _, vx, vy in best[:3]:
         q = refine(coarse, _start(vx, vy), 4, coarse.scale)

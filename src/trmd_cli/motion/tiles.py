@@ -135,10 +135,29 @@ def background_motion(events: EventStream, exposure: Exposure,
     if out is None:
         return None
     ignore = out if hot_mask is None else (out | hot_mask)
-    motion = estimate_motion(events, exposure, ignore, search)
+    motion = estimate_motion(events, exposure, ignore, search,
+                             start=_majority_velocity(votes, out, w, h))
     if motion.events < MIN_EVENTS or not follows_votes(motion, votes, out, w, h):
         return None
     return motion
+
+
+def _majority_velocity(votes: dict[tuple[int, int], tuple[float, float]], outvoted: np.ndarray,
+                       width: int, height: int, grid: tuple[int, int] = GRID
+                       ) -> tuple[float, float]:
+    """The mean velocity (pixels per exposure) of the tiles not ``outvoted``."""
+    keys = _majority(votes, outvoted, width, height, grid)
+    v = np.array([votes[k] for k in keys]).mean(0)
+    return float(v[0]), float(v[1])
+
+
+def _majority(votes: dict[tuple[int, int], tuple[float, float]], outvoted: np.ndarray,
+              width: int, height: int, grid: tuple[int, int] = GRID) -> list[tuple[int, int]]:
+    """The voting tiles (column, row) that are not ``outvoted``, (H, W) bool."""
+    cols, rows = grid
+    return [k for k in votes
+            if not outvoted[(2 * k[1] + 1) * height // (2 * rows),
+                            (2 * k[0] + 1) * width // (2 * cols)]]
 
 
 def follows_votes(motion: GlobalMotion, votes: dict[tuple[int, int], tuple[float, float]],
@@ -152,9 +171,7 @@ def follows_votes(motion: GlobalMotion, votes: dict[tuple[int, int], tuple[float
     pixels, rotation and zoom went to their bounds and the motion was 12 px off the camera's
     path at both ends, 18 px off the votes in the median)."""
     cols, rows = grid
-    keys = [k for k in votes
-            if not outvoted[(2 * k[1] + 1) * height // (2 * rows),
-                            (2 * k[0] + 1) * width // (2 * cols)]]
+    keys = _majority(votes, outvoted, width, height, grid)
     if not keys:
         return False
     cx = np.array([(i + 0.5) * width / cols for i, _ in keys])
