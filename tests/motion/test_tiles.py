@@ -117,8 +117,9 @@ def test_translation_gains_equal_the_searchs_own_gain():
 
 def test_follows_votes_by_hand():
     """Nine tiles voted (4, 0) px, three (30, 0) (outvoted): a translation of (4.5, 0.5)
-    moves the nine as they voted; one of (20, −10) does not (16 px off each, over twice the 6 px agreement); nor does a
-    rotation that moves the frame's edges tens of pixels, though it leaves the centre still."""
+    moves the nine as they voted; one of (20, −10) does not (16 px off each, over twice the
+    6 px agreement); nor does a rotation that moves the frame's edges tens of pixels, though
+    it leaves the centre still."""
     from trmd_cli.motion import GlobalMotion
     from trmd_cli.motion.tiles import follows_votes
 
@@ -135,7 +136,7 @@ def test_follows_votes_by_hand():
 
 
 def test_estimate_from_a_start_velocity():
-    """Contrast maximisation started from a velocity 3 px off instead of its grid still
+    """Contrast maximisation started from a given velocity, 3 px off, instead of its grid
     finds the translation within 0.2 px at the exposure's end."""
     from trmd_cli.motion import estimate_motion
 
