@@ -125,7 +125,7 @@ def motion_summary(views: MotionViews) -> dict[str, Any]:
         "confidence": _r(m.confidence),
         "confidence_meaning": "contrast gain of the events carried by the motion over the "
                               "events as recorded (1 = the events show no motion; the "
-                              "deconvolution is trusted from 1.2, never below 1.05)",
+                              "deconvolution is trusted fully from 1.1, never below 1.05)",
         "events": int(m.events),
         "deconvolution_share": _r(float(views.weight.mean())),
         "deconvolution_share_meaning": "mean of weight.png: the deconvolution's share in the "
