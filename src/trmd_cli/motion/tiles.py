@@ -63,6 +63,9 @@ def tile_velocities(events: EventStream, exposure: Exposure,
     # smaller ones, where 8 px cells blur a tile's texture into a few values
     side = min(w / cols, h / rows)
     scale = 8.0 if side >= 80 else 4.0 if side >= 40 else 2.0
+    steps = np.arange(-vmax, vmax + 1e-9, scale)
+    cands = np.array([(a, b) for a in steps for b in steps])
+    half = scale / 2
     out: dict[tuple[int, int], tuple[float, float]] = {}
     rng = np.random.default_rng(search.seed)
     for k in range(cols * rows):
@@ -72,21 +75,17 @@ def tile_velocities(events: EventStream, exposure: Exposure,
         if len(idx) > TILE_MAX_EVENTS:
             idx = np.sort(rng.choice(idx, TILE_MAX_EVENTS, replace=False))
         tau = u[idx] - 0.5
-        steps = np.arange(-vmax, vmax + 1e-9, scale)
-        cands = np.array([(a, b) for a in steps for b in steps])
         # the coarsest grid from about ROUGH_EVENTS events: its cells need few to rank
         few = slice(None, None, max(len(idx) // ROUGH_EVENTS, 1))
         gains = _translation_gains(x[idx][few], y[idx][few], tau[few], cands, w, h, scale)
         seeds = cands[np.argsort(-gains, kind="stable")[:3]]
-        half = scale / 2
         near = np.array(sorted({(a + dx, b + dy) for a, b in seeds.tolist()
                                 for dx in (-half, 0.0, half) for dy in (-half, 0.0, half)}))
         gains = _translation_gains(x[idx], y[idx], tau, near, w, h, half)
         vx, vy = near[int(np.argmax(gains))]
-        # then the velocity alone, ascended at full resolution: the grids' cells bias a small
-        # tile's optimum towards slow motion
-        # on the tile's box widened by its events' reach, not the whole sensor: the same
-        # image of warped events there, a tenth of the pixels to blur
+        # then the velocity alone, ascended at full resolution (the grids' cells bias a small
+        # tile's optimum towards slow motion), on the tile's box widened by its events' reach:
+        # the same image of warped events as on the whole sensor, a tenth of the pixels
         reach = 0.5 * np.hypot(vx, vy) + 2 * half + 4.0
         x0 = max(int(x[idx].min() - reach), 0)
         y0 = max(int(y[idx].min() - reach), 0)
