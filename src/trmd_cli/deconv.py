@@ -726,6 +726,7 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
     The prior's weight follows B's measured noise (:meth:`DeconvConfig.for_noise`).
     """
     from .motion import MIN_EVENTS, estimate_motion
+    from .motion.cmax import window_points
 
     given = motion is not None
     if motion is None:
@@ -755,13 +756,7 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
         return second_chance(reason) if given else MotionDeblur(edi_frames, zero, motion,
                                                                 (reason,))
     d = deconvolve(blurry, motion, cfg, start=edi_middle, anchor=edi_middle)
-    ev = events.within(exposure)
-    x, y = ev.x, ev.y
-    u = (ev.t - exposure.start_us).astype(np.float64) / exposure.duration_us
-    if hot_mask is not None and hot_mask.any() and len(x):
-        keep = ~hot_mask[y, x]
-        x, y, u = x[keep], y[keep], u[keep]
-    gains = tile_gains(motion, x.astype(np.float64), y.astype(np.float64), u, w, h)
+    gains = tile_gains(motion, *window_points(events, exposure, hot_mask), w, h)
     wgt = guard_weights(d.data_weight, motion.confidence, gains)
     share = float(wgt.mean())
     if share < MIN_SHARE:
@@ -779,9 +774,7 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
     explained = wgt > 0.5
     weights = np.stack([np.maximum(wgt, events_ok * agreement(f, e, explained))
                         for f, e in zip(deb, edi_frames)])
-    ww = weights[..., None] if deb.ndim == 4 else weights
-    out = (ww * deb + (1.0 - ww) * edi_frames).astype(np.float32)
-    return MotionDeblur(out, wgt, motion, (), weights)
+    return MotionDeblur(_blend(deb, edi_frames, weights), wgt, motion, (), weights)
 
 
 def _background_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: np.ndarray,
@@ -822,9 +815,14 @@ def _background_deblur(blurry: np.ndarray, events, exposure, fractions, edi_fram
                                         f"only {100 * share:.0f} % of the frame",))
     deb = d.frames(fractions)
     weights = np.repeat(wgt[None], len(deb), axis=0)
-    ww = weights[..., None] if deb.ndim == 4 else weights
-    out = (ww * deb + (1.0 - ww) * edi_frames).astype(np.float32)
     reason = fallback.notes[0].removesuffix(": used EDI")
-    return MotionDeblur(out, wgt, motion,
+    return MotionDeblur(_blend(deb, edi_frames, weights), wgt, motion,
                         (f"{reason}; deconvolved along {which}, where it predicts the events "
                          f"({100 * share:.0f} % of the frame), EDI elsewhere",), weights)
+
+
+def _blend(frames: np.ndarray, edi_frames: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """``weights`` (K, H, W) of ``frames`` and the rest of ``edi_frames`` (K, H, W[, 3]),
+    float32."""
+    ww = weights[..., None] if frames.ndim == 4 else weights
+    return (ww * frames + (1.0 - ww) * edi_frames).astype(np.float32)

@@ -68,18 +68,13 @@ def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
     """
     from .edi import check_blurry
     from .methods import EdiMethod, motion_frames
-    from .motion import warped_image
+    from .motion.cmax import warped_image, window_points
 
     b = check_blurry(blurry, events.width, events.height)
     prep = EdiMethod(3, contrast, hot_pixels).prepare(b, events, exposure)
     _, res = motion_frames(b, events, exposure, np.array([0.5]), prep)
     w, h = events.width, events.height
-    ev = events.within(exposure)
-    x, y = ev.x.astype(np.float64), ev.y.astype(np.float64)
-    u = (ev.t - exposure.start_us).astype(np.float64) / exposure.duration_us
-    if prep.hot is not None and prep.hot.any() and len(x):
-        keep = ~prep.hot[ev.y, ev.x]
-        x, y, u = x[keep], y[keep], u[keep]
+    x, y, u = window_points(events, exposure, prep.hot)
     before = warped_image(GlobalMotion(), x, y, u, w, h)
     after = warped_image(res.motion, x, y, u, w, h)
     return MotionViews(res.motion, displacement_field(res.motion, w, h),

@@ -29,7 +29,7 @@ import numpy as np
 from ..events import EventStream, Exposure
 from .model import GlobalMotion
 
-__all__ = ["estimate_motion", "warped_image", "MIN_EVENTS", "PERSPECTIVE_MIN_GAIN",
+__all__ = ["estimate_motion", "warped_image", "window_points", "MIN_EVENTS", "PERSPECTIVE_MIN_GAIN",
            "JERK_MIN_GAIN", "MotionSearch"]
 
 #: fewer events than this in the window: no estimate (confidence 0)
@@ -71,6 +71,21 @@ class MotionSearch:
     max_events: int = 60_000
     seed: int = 0
     iterations: int = 30
+
+
+def window_points(events: EventStream, exposure: Exposure,
+                  hot_mask: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The events of ``exposure`` as points: (x, y) pixels and u, the fraction of the exposure
+    (float64 each), the events of ``hot_mask``'s (H, W) pixels left out."""
+    ev = events.within(exposure)
+    x = ev.x.astype(np.float64)
+    y = ev.y.astype(np.float64)
+    u = (ev.t - exposure.start_us).astype(np.float64) / exposure.duration_us
+    if hot_mask is not None and hot_mask.any() and len(x):
+        keep = ~hot_mask[ev.y, ev.x]
+        x, y, u = x[keep], y[keep], u[keep]
+    return x, y, u
 
 
 def _params_to_motion(q: np.ndarray, centre, radius: float, conf: float = 0.0,
@@ -376,16 +391,10 @@ def estimate_motion(events: EventStream, exposure: Exposure,
         zero motion with confidence 0 when the window holds fewer than :data:`MIN_EVENTS`.
     """
     search = MotionSearch() if search is None else search
-    ev = events.within(exposure)
     w, h = events.width, events.height
     centre = ((w - 1) / 2, (h - 1) / 2)
     radius = 0.5 * max(w, h)
-    x = ev.x.astype(np.float64)
-    y = ev.y.astype(np.float64)
-    u = (ev.t - exposure.start_us).astype(np.float64) / exposure.duration_us
-    if hot_mask is not None and hot_mask.any() and len(x):
-        keep = ~hot_mask[ev.y, ev.x]
-        x, y, u = x[keep], y[keep], u[keep]
+    x, y, u = window_points(events, exposure, hot_mask)
     n = len(x)
     if n < MIN_EVENTS:
         return GlobalMotion(centre=centre, events=n)

@@ -151,15 +151,10 @@ def event_gain(motion, events, exposure, hot_mask: np.ndarray | None = None
     """
     from scipy.ndimage import gaussian_filter
 
-    from .cmax import warped_image
+    from .cmax import warped_image, window_points
     from .model import GlobalMotion
 
-    ev = events.within(exposure)
-    x, y = ev.x.astype(np.float64), ev.y.astype(np.float64)
-    u = (ev.t - exposure.start_us).astype(np.float64) / exposure.duration_us
-    if hot_mask is not None and hot_mask.any() and len(x):
-        keep = ~hot_mask[ev.y, ev.x]
-        x, y, u = x[keep], y[keep], u[keep]
+    x, y, u = window_points(events, exposure, hot_mask)
     if len(x) < 2:
         return 0.0, int(len(x))
     w, h = events.width, events.height

@@ -13,7 +13,15 @@ from __future__ import annotations
 import numpy as np
 
 from ..events import EventStream, Exposure
-from .cmax import MIN_EVENTS, MotionSearch, _ascend, _Level, _start, estimate_motion
+from .cmax import (
+    MIN_EVENTS,
+    MotionSearch,
+    _ascend,
+    _Level,
+    _start,
+    estimate_motion,
+    window_points,
+)
 from .model import GlobalMotion
 
 __all__ = ["tile_velocities", "outvoted_tiles", "background_motion", "follows_votes",
@@ -45,13 +53,8 @@ def tile_velocities(events: EventStream, exposure: Exposure,
     then the velocity ascended at full resolution on the tile's box.
     """
     search = MotionSearch() if search is None else search
-    ev = events.within(exposure)
     w, h = events.width, events.height
-    x, y = ev.x.astype(np.float64), ev.y.astype(np.float64)
-    u = (ev.t - exposure.start_us).astype(np.float64) / exposure.duration_us
-    if hot_mask is not None and hot_mask.any() and len(x):
-        keep = ~hot_mask[ev.y, ev.x]
-        x, y, u = x[keep], y[keep], u[keep]
+    x, y, u = window_points(events, exposure, hot_mask)
     centre, radius = ((w - 1) / 2, (h - 1) / 2), 0.5 * max(w, h)
     cols, rows = grid
     tile = np.minimum((x * cols / w).astype(np.int64), cols - 1) * rows + \
