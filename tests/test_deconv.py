@@ -16,6 +16,7 @@ from trmd_cli.deconv import (
     change_of_log,
     data_weights,
     deconvolve,
+    fit_contrast,
     guard_weights,
     noise_level,
     tile_gains,
@@ -278,6 +279,55 @@ def test_change_agreement_rejects_a_motion_off_by_a_pixel_or_two():
     assert right[8:-8, 8:-8].min() > 0.99
     off = change_agreement(_Ends(shifted(img, -4.5), shifted(img, 4.5)), change, 0.2)
     assert off[8:-8, 8:-8].mean() < 0.1
+
+
+def _counted(counts: np.ndarray) -> EventStream:
+    """Events whose signed count at each pixel is ``counts`` (H, W) whole numbers, one
+    microsecond apart inside ``Exposure(0, 10**6)``."""
+    h, w = counts.shape
+    pix = np.repeat(np.arange(h * w), np.abs(counts).reshape(-1))
+    pol = np.sign(counts.reshape(-1))[pix].astype(np.int8)
+    return EventStream((pix % w).astype(np.uint16), (pix // w).astype(np.uint16),
+                       np.arange(len(pix), dtype=np.int64), pol, w, h)
+
+
+def test_fit_contrast_reads_the_threshold_the_frames_imply():
+    """Frames at the ends whose log ratio is c times the events' count: the slope is c (both
+    sides smoothed alike); ends unrelated to the events give no fit (they correlate nowhere),
+    and neither does a slope outside [near/2, 2·near]."""
+    rng = np.random.default_rng(8)
+    counts = np.rint(rng.normal(0.0, 2.0, (60, 80))).astype(np.int64)
+    ev = _counted(counts)
+    first = rng.uniform(0.2, 0.8, (60, 80))
+    ones = np.ones((60, 80), np.float32)
+    for c in (0.15, 0.32):
+        last = (first + 0.02) * np.exp(c * counts) - 0.02
+        got = fit_contrast(_Ends(first, last), ev, Exposure(0, 10**6), ones)
+        assert got == pytest.approx(c, rel=1e-4)
+        assert fit_contrast(_Ends(first, last), ev, Exposure(0, 10**6), ones,
+                            near=0.5 * c - 0.01) is None
+    unrelated = rng.uniform(0.2, 0.8, (60, 80))
+    assert fit_contrast(_Ends(first, unrelated), ev, Exposure(0, 10**6), ones) is None
+    # where re-blurring does not explain B nothing is read
+    last = (first + 0.02) * np.exp(0.2 * counts) - 0.02
+    assert fit_contrast(_Ends(first, last), ev, Exposure(0, 10**6), 0 * ones) is None
+
+
+def test_estimated_threshold_is_refitted_for_edis_frames():
+    """A DAVIS-like sensor (mean threshold 0.25): the search says 0.277, the deconvolution
+    implies 0.253 (measured), and EDI's frames blended in by the motion method use that; a c
+    the user gives is kept."""
+    motion = MotionRanges(translation_px=14, rotation_deg=0.5, scale=0.01, perspective=0,
+                          curvature=0.2, foreground_prob=0.0, max_layers=1)
+    s = make_sample(texture(300, 400, seed=6), size=(160, 120),
+                    rng=np.random.default_rng(6), motion=motion, sensor=SensorConfig())
+    est = MotionMethod()(s.blurry, s.events, s.exposure)
+    assert est.contrast_estimated and est.fallback_contrast is not None
+    assert abs(np.log(est.fallback_contrast / s.contrast)) < 0.05
+    assert abs(np.log(est.fallback_contrast / s.contrast)) < \
+        abs(np.log(est.contrast / s.contrast)) - 0.05
+    given = MotionMethod(contrast=est.contrast)(s.blurry, s.events, s.exposure)
+    assert given.fallback_contrast is None
 
 
 def test_background_motion_when_the_estimate_follows_a_mover():

@@ -111,10 +111,25 @@ def test_result_folder_holds_each_frame_and_the_middle_one(tmp_path, umask_022):
                                                       strict=True)]
     meta = json.loads((tmp_path / "meta.json").read_text())
     assert meta["method"] == "edi" and meta["events"] == 42
+    assert meta["contrast"] == 0.3 and "fallback_contrast" not in meta
     # values above 1: the frames' top sixth (1.0 … 1.2 of a ramp up to 1.2)
     above = int((res.frames > 1.0).sum())
     assert info["clipped_fraction"] == pytest.approx(above / res.frames.size)
     assert 0.15 < info["clipped_fraction"] < 0.18
+
+
+def test_result_folder_says_the_motion_methods_refitted_threshold(tmp_path):
+    import dataclasses
+    import json
+
+    from trmd_cli.write import write_result_folder
+
+    res = _result()
+    res = dataclasses.replace(res, estimate=dataclasses.replace(res.estimate,
+                                                                fallback_contrast=0.2625))
+    write_result_folder(tmp_path, res, meta={"method": "motion"})
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    assert meta["contrast"] == 0.3 and meta["fallback_contrast"] == 0.2625
 
 
 def test_a_full_disk_in_a_result_folder_is_one_line(tmp_path, monkeypatch):

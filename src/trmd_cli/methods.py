@@ -175,6 +175,9 @@ class Estimate:
         hot_pixels: number of pixels whose events were ignored.
         contrast_note: see :attr:`Prepared.note`.
         notes: other messages for the user (e.g. a method's fallback to EDI).
+        fallback_contrast: the motion method's: c of the EDI frames it blended in where its
+            deconvolution was not kept, fitted to that deconvolution
+            (:func:`~trmd_cli.deconv.fit_contrast`); None: ``contrast``.
     """
 
     frames: np.ndarray
@@ -185,6 +188,7 @@ class Estimate:
     hot_pixels: int = 0
     contrast_note: str | None = None
     notes: tuple[str, ...] = ()
+    fallback_contrast: float | None = None
 
 
 class Method(Protocol):
@@ -281,16 +285,20 @@ def _at_instants(frames: np.ndarray, events: EventStream, grid: np.ndarray, inst
 def motion_frames(blurry: np.ndarray, events: EventStream, exposure: Exposure,
                   fractions: np.ndarray, prep: Prepared, motion=None):
     """The motion method on a settled exposure: ``(edi, res)`` — EDI's frames at
-    ``fractions`` of the exposure (its fallback) and the guarded deconvolution
-    (:class:`~trmd_cli.deconv.MotionDeblur`), both with ``prep``'s c and hot pixels.
+    ``fractions`` of the exposure and the guarded deconvolution
+    (:class:`~trmd_cli.deconv.MotionDeblur`), both with ``prep``'s c and hot pixels; where
+    that c was estimated, the EDI frames inside ``res`` have the c the deconvolution implies
+    (its ``fallback_contrast``).
     ``motion``: a path to use instead of the estimate, its evidence already measured."""
     from .deconv import motion_deblur
 
     # EDI at the instants and at mid-exposure in one pass (one blur integral, not two)
     lat = prep.model.latent(blurry, np.append(fractions, 0.5), prep.contrast)
     edi, mid = lat[:-1], lat[-1]
+    # an estimated c is refitted to the deconvolution for EDI's frames; a given one is kept
+    refit = (lambda c: prep.model.latent(blurry, fractions, c)) if prep.estimated else None
     res = motion_deblur(blurry, events, exposure, fractions, edi, mid, prep.hot,
-                        motion=motion, contrast=prep.contrast)
+                        motion=motion, contrast=prep.contrast, edi_at=refit)
     return edi, res
 
 
@@ -538,7 +546,8 @@ class MotionMethod:
         _, res = motion_frames(b, events, exposure, fr, prep, given)
         return Estimate(res.frames, inst, prep.contrast, prep.estimated, prep.reliable,
                         prep.hot_pixels, prep.note,
-                        tuple(f"{self.note_prefix}{note}" for note in res.notes))
+                        tuple(f"{self.note_prefix}{note}" for note in res.notes),
+                        res.fallback_contrast)
 
     def from_bins(self, blurry, bins, fractions=None) -> Estimate:
         raise InputError("`method='motion'` needs event times to estimate the motion; binned "

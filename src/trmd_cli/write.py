@@ -589,6 +589,8 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
             "instants_us": [float(t) for t in result.instants_us],
             "contrast": result.estimate.contrast,
             "contrast_estimated": result.estimate.contrast_estimated,
+            **({} if result.estimate.fallback_contrast is None else
+               {"fallback_contrast": result.estimate.fallback_contrast}),
             "events": result.num_events,
             "hot_pixels": result.estimate.hot_pixels,
             "passthrough": result.passthrough,
