@@ -799,7 +799,6 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
     gains_later = beside(tile_gains, motion, *window_points(events, exposure, hot_mask), w, h)
     d = deconvolve(blurry, motion, cfg, start=edi_middle, anchor=edi_middle)
     gains = gains_later.result()
-    fitted = None
     if edi_at is not None and contrast is not None:
         # where re-blurring explains B the deconvolution's change of log over the exposure is
         # right even when the guard does not keep the motion: the c it implies is EDI's, in
@@ -899,8 +898,8 @@ def fit_contrast(solved: Deconvolved, events, exposure, weight: np.ndarray,
     the events alone, and on DAVIS-like sensors it lands 1.2× high in the median (1.3× with
     movers). A deconvolution along a motion that holds predicts each pixel's change without
     c (its anchor weighs little), so the events' count gives c directly: on 16 simulated
-    frames with two movers the slope was within 0.5–15 % of the true mean threshold (the
-    search 18–70 % above it).
+    frames with two movers the slope was 1.06× the true mean threshold in the median
+    (0.94–1.43×), the search 1.30× (1.18–1.70×).
     """
     import cv2
 

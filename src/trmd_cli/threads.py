@@ -31,7 +31,8 @@ _SIDE: dict[int, ThreadPoolExecutor] = {}
 
 def product_threads() -> int:
     """Threads for one product: torch's thread count (what ``--threads`` and ``--jobs`` set for
-    this process), at most 4."""
+    this process), at most 4 (a product takes a few milliseconds; finer parts cost their
+    hand-offs, and more than two were not measured)."""
     import torch
 
     return max(1, min(int(torch.get_num_threads()), 4))
