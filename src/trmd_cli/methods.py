@@ -570,8 +570,11 @@ class FusedMethod:
                  device: str = "auto", threads: int | None = None,
                  contrast: float | None = None, hot_pixels: bool = True,
                  precision: str = "auto", fusion_weights: str | Path | None = None) -> None:
+        import torch
+
         from .models.fusion import default_fusion_path, load_fusion
         from .models.weights import weights_hash
+        from .precision import resolve_precision
 
         self._trmd = TrmdMethod(n, weights, device, threads, contrast, hot_pixels, precision,
                                 settle_contrast=True)
@@ -580,6 +583,11 @@ class FusedMethod:
         fpath = default_fusion_path() if fusion_weights is None else Path(fusion_weights)
         #: the loaded fusion network (on the CPU: it is small) and its metadata
         self.fusion, self.fusion_meta = load_fusion(fpath)
+        # channels-last, and bfloat16 where the CPU computes it natively (``precision``, as
+        # for TRMD): 3.5× faster than float32 in the default layout (0.35 → 0.10 s for a
+        # 346×260 frame's seven instants on 2 cores with AMX)
+        self.fusion = self.fusion.to(memory_format=torch.channels_last)
+        self._fusion_amp = resolve_precision(precision, torch.device("cpu"))
         self.weights_hash = f"{self._trmd.weights_hash}+{weights_hash(fpath)}"
 
     @staticmethod
@@ -615,6 +623,7 @@ class FusedMethod:
 
         from .fusion import fusion_inputs
         from .models.fusion import MAX_CONTRAST, fusion_planes
+        from .precision import autocast
 
         b = check_blurry(blurry, events.width, events.height)
         grid, inst, nearest, exact = _grid_match(exposure, self.n, instants_us)
@@ -636,7 +645,10 @@ class FusedMethod:
                 # one instant at a time: a batch of all 2N+1 makes activations of 40–120 MB,
                 # above what the C heap keeps (32 MiB), so every frame mapped them afresh
                 # and faulted in each page (12.6 M page faults over davis346's 59 frames)
-                out = torch.cat([self.fusion(p) for p in planes.split(1)])[:, 0].numpy()
+                with autocast(torch.device("cpu"), self._fusion_amp):
+                    out = torch.cat([self.fusion(p.contiguous(memory_format=torch.channels_last))
+                                     for p in planes.split(1)])
+                out = out[:, 0].float().numpy()
             k = ins.motion.shape[0]
             frames = out.reshape(k, *ins.motion.shape[3:], *out.shape[1:])
             if ins.motion.ndim == 4:  # (K, C, H, W) → (K, H, W, C)
