@@ -33,8 +33,11 @@ class MotionViews:
         events_before: (H, W) float64 bilinear votes of the exposure's events where they were
             recorded; events_after: the same events carried to mid-exposure by the motion.
         exposure: the window, µs.
-        contrast: the c EDI used for the fallback.
+        contrast: the c settled for the exposure (the deconvolution's anchor is EDI's with it).
         notes: what the method said (fallbacks to EDI and why).
+        fallback_contrast: the c of the EDI frames blended in, refitted to the deconvolution
+            when ``contrast`` was estimated (:func:`~trmd_cli.deconv.fit_contrast`); None:
+            ``contrast``.
     """
 
     motion: GlobalMotion
@@ -45,6 +48,7 @@ class MotionViews:
     exposure: Exposure
     contrast: float
     notes: tuple[str, ...] = ()
+    fallback_contrast: float | None = None
 
 
 def displacement_field(motion, width: int, height: int) -> np.ndarray:
@@ -57,21 +61,28 @@ def displacement_field(motion, width: int, height: int) -> np.ndarray:
 
 
 def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
-                 contrast: float | None = None, hot_pixels: bool = True) -> MotionViews:
+                 contrast: float | None = None, hot_pixels: bool = True,
+                 recording=None) -> MotionViews:
     """Estimate the exposure's motion and run the motion method's guard, as
     ``trmd deblur --method motion`` does.
 
     Args:
         blurry: (H, W[, 3]) float32 [0, 1]; events, exposure: the stream and its window (µs).
-        contrast: c for EDI's fallback (None = estimated on this frame alone).
+        contrast: c for EDI's fallback, as given (None = estimated on this frame alone).
         hot_pixels: leave the events of hot pixels out.
+        recording: the recording's estimated c (a
+            :class:`~trmd_cli.threshold.RecordingContrast`), used instead of ``contrast``; as
+            an estimate, it is refitted for EDI's frames as ``trmd deblur`` does.
     """
     from .edi import check_blurry
     from .methods import EdiMethod, motion_frames
     from .motion.cmax import warped_image, window_points
 
     b = check_blurry(blurry, events.width, events.height)
-    prep = EdiMethod(3, contrast, hot_pixels).prepare(b, events, exposure)
+    edi = EdiMethod(3, contrast, hot_pixels)
+    if recording is not None:
+        edi = edi.for_recording(recording)
+    prep = edi.prepare(b, events, exposure)
     _, res = motion_frames(b, events, exposure, np.array([0.5]), prep)
     w, h = events.width, events.height
     x, y, u = window_points(events, exposure, prep.hot)
@@ -79,7 +90,7 @@ def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
     after = warped_image(res.motion, x, y, u, w, h)
     return MotionViews(res.motion, displacement_field(res.motion, w, h),
                        np.asarray(res.weight, np.float32), before, after, exposure,
-                       float(prep.contrast), tuple(res.notes))
+                       float(prep.contrast), tuple(res.notes), res.fallback_contrast)
 
 
 def _r(v: float, digits: int = 4) -> float:
@@ -126,5 +137,11 @@ def motion_summary(views: MotionViews) -> dict[str, Any]:
         "deconvolution_share_meaning": "mean of weight.png: the deconvolution's share in the "
                                        "output, the rest EDI's",
         "contrast": _r(views.contrast),
+        "fallback_contrast": None if views.fallback_contrast is None else
+        _r(views.fallback_contrast),
+        "fallback_contrast_meaning": "c of EDI's frames where the deconvolution is not kept: "
+                                     "the estimated c refitted to the deconvolution's change "
+                                     "of log intensity against the events' count (null: "
+                                     "contrast, given or no fit)",
         "notes": list(views.notes),
     }

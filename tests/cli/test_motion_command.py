@@ -66,6 +66,8 @@ def test_motion_json_has_the_known_translation(result):
     assert abs(m["zoom_log_scale_per_exposure"]) < 0.01
     assert m["start_to_end_px"]["mean"] == pytest.approx(math.hypot(dx, dy), abs=0.6)
     assert m["confidence"] > 1.2 and m["events"] > 500
+    # the estimated c refitted to the deconvolution (the sensor's threshold: 0.2)
+    assert m["fallback_contrast"] == pytest.approx(0.2, rel=0.05)
     assert "velocity (" in r.stdout and "wrote" in r.stdout
 
 

@@ -92,13 +92,13 @@ def motion(
                              "recording)")
         for w in ins.warnings:
             warn(w)
+        rec = None
         if c is None and contrast_scope(contrast) == "recording":
             # as `trmd deblur --method motion` settles it: one c for the recording
             from ..deblur import recording_contrast, recording_line
 
             rec = recording_contrast(ins.source, hot_pixels=hot_pixels)
             if rec is not None:
-                c = rec.contrast
                 typer.echo(as_flags(recording_line(rec)))
         written: list[str] = []
         with atomic_dir(output) as tmp, Progress(
@@ -113,7 +113,7 @@ def motion(
                     bar.advance(task)
                     continue
                 views = motion_views(f.image, win.events, e, contrast=c,
-                                     hot_pixels=hot_pixels)
+                                     hot_pixels=hot_pixels, recording=rec)
                 folder = tmp
                 if not ins.single:
                     folder = tmp / frame_folder_name(f.name, f.index)
