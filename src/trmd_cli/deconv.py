@@ -925,7 +925,9 @@ def fit_contrast(solved: Deconvolved, events, exposure, weight: np.ndarray,
     if n < FIT_MIN_PIXELS or n < FIT_MIN_SHARE * int(active.sum()):
         return None
     s = count[sel].astype(np.float64)
-    c = float(np.dot(change[sel].astype(np.float64), s) / np.dot(s, s))
+    # numpy's own sums, not BLAS's dot: the same digits whatever the thread count (``--jobs``
+    # workers run BLAS on one thread)
+    c = float(np.sum(change[sel].astype(np.float64) * s) / np.sum(s * s))
     if not c > 0 or (near is not None and not 0.5 * near <= c <= 2.0 * near):
         return None
     return c
