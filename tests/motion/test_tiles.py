@@ -97,6 +97,26 @@ def test_background_motion_leaves_a_mover_out():
     assert np.allclose(y - [20.0, 100.0], -3.0, atol=1.0)
 
 
+def test_votes_do_not_depend_on_the_thread_count():
+    """The tiles shared out over two or three threads vote exactly as one thread does, in the
+    same order (their event subsets are drawn before they are shared out)."""
+    import torch
+
+    img = texture(H, W, seed=2)
+    ev, ex = _translated_events((12.0, -6.0), img, seed=1,
+                                region=(slice(40, 80), slice(40, 120)), other=(-30.0, 10.0))
+    before = torch.get_num_threads()
+    try:
+        got = []
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            got.append(tile_velocities(ev, ex))
+    finally:
+        torch.set_num_threads(before)
+    assert len(got[0]) == 12
+    assert list(got[0].items()) == list(got[1].items()) == list(got[2].items())
+
+
 def test_translation_gains_equal_the_searchs_own_gain():
     """All candidates at once score each translation as contrast maximisation's own level
     does, one at a time (its gain times the unwarped image's variance)."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..events import EventStream, Exposure
+from ..threads import product_threads, run_split
 from .cmax import (
     MIN_EVENTS,
     MotionSearch,
@@ -69,14 +70,19 @@ def tile_velocities(events: EventStream, exposure: Exposure,
     steps = np.arange(-vmax, vmax + 1e-9, scale)
     cands = np.array([(a, b) for a in steps for b in steps])
     half = scale / 2
-    out: dict[tuple[int, int], tuple[float, float]] = {}
+    # each voting tile's events, drawn in tile order (the same subsets however the tiles are
+    # then shared out)
     rng = np.random.default_rng(search.seed)
+    voters: list[tuple[int, np.ndarray]] = []
     for k in range(cols * rows):
         idx = order[bounds[k]:bounds[k + 1]]
         if len(idx) < TILE_EVENTS:
             continue
         if len(idx) > TILE_MAX_EVENTS:
             idx = np.sort(rng.choice(idx, TILE_MAX_EVENTS, replace=False))
+        voters.append((k, idx))
+
+    def vote(idx: np.ndarray) -> tuple[float, float]:
         tau = u[idx] - 0.5
         # the coarsest grid from about ROUGH_EVENTS events: its cells need few to rank
         few = slice(None, None, max(len(idx) // ROUGH_EVENTS, 1))
@@ -96,7 +102,15 @@ def tile_velocities(events: EventStream, exposure: Exposure,
         bh = min(int(y[idx].max() + reach) + 1, h) - y0
         fine = _Level(x[idx] - x0, y[idx] - y0, u[idx], bw, bh, 1.0, centre, radius)
         q = _ascend(fine, _start(vx, vy), 2, (0.0, 0.0, 0.0), 10, 0.5)
-        out[(k // rows, k % rows)] = (float(q[0]), float(q[1]))
+        return float(q[0]), float(q[1])
+
+    # the tiles on the process's threads (their candidate grids are arrays of 10⁵ entries,
+    # whose passes release the interpreter), every second tile to each
+    parts = max(min(product_threads(), len(voters)), 1)
+    shares = run_split(lambda p: [vote(idx) for _, idx in voters[p::parts]], parts)
+    out: dict[tuple[int, int], tuple[float, float]] = {}
+    for i, (k, _) in enumerate(voters):
+        out[(k // rows, k % rows)] = shares[i % parts][i // parts]
     return out
 
 
