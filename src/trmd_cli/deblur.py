@@ -25,6 +25,7 @@ from .errors import InputError
 from .events import Exposure
 from .methods import Estimate, Method, MethodConfig, window_model
 from .read.folders import BinnedSource, BinnedWindow, FrameWindow
+from .threads import product_threads, run_split
 from .threshold import (
     INSTANTS,
     MIN_EVENTS,
@@ -183,8 +184,15 @@ def recording_contrast(source: Sequence, *, hot_pixels: bool = True,
     # the frames share out the energy's instants (frame i takes every len(kept)-th from i):
     # an evaluation then costs what one frame's does, and sees as many instants
     step = len(kept) if share_instants else 1
-    used = [(item.frame.name, obj) for i, (_, _, item) in enumerate(kept)
-            if (obj := _objective(item, hot_pixels, INSTANTS[i % step::step])) is not None]
+    # the frames' objectives (sorting, tables and filters of 10⁴–10⁵ events each) on the
+    # process's threads, in frame order
+    parts = max(min(product_threads(), len(kept)), 1)
+    built = run_split(lambda p: [_objective(item, hot_pixels, INSTANTS[i % step::step])
+                                 for i, (_, _, item) in enumerate(kept) if i % parts == p],
+                      parts)
+    objs = [built[i % parts][i // parts] for i in range(len(kept))]
+    used = [(item.frame.name, obj) for (_, _, item), obj in zip(kept, objs, strict=True)
+            if obj is not None]
     if not used:
         return None
     c, energy, at_bound, evaluations = search_contrast_pooled([o for _, o in used])
