@@ -84,3 +84,32 @@ def test_an_error_in_the_consumer_stops_the_producer():
     n = len(produced)
     time.sleep(0.1)
     assert len(produced) == n <= 5 + 1 + 2
+
+
+def test_finalised_on_the_producer_thread_it_stops_without_waiting_for_itself():
+    """An abandoned loop's generator may be finalised by the garbage collector on the
+    producer's own thread: closing it there neither raises ("cannot join current thread",
+    before) nor touches the running items; the producer then stops."""
+    box: dict = {}
+    errors: list[BaseException] = []
+    produced: list[int] = []
+
+    def items():
+        for i in range(1000):
+            if i == 2:
+                try:
+                    box["loop"].close()  # as the collector would, on this thread
+                except BaseException as e:  # noqa: BLE001 - what the test looks for
+                    errors.append(e)
+            produced.append(i)
+            yield i
+
+    loop = ahead(items(), depth=1)
+    box["loop"] = loop
+    assert next(loop) == 0
+    deadline = time.monotonic() + 5
+    while any(t.name == "trmd-ahead" and t.is_alive() for t in threading.enumerate()):
+        assert time.monotonic() < deadline, "the producer did not stop"
+        time.sleep(0.01)
+    assert errors == []
+    assert len(produced) <= 4  # it stopped at the item after the close

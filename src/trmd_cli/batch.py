@@ -511,13 +511,16 @@ class Tally:
         """(k, result) of frames ``positions`` of recording ``r``, from ``results`` (theirs, in
         order; the next made while the last is written), each one's warnings and contrast
         note kept for the report."""
+        from contextlib import closing
+
         from .overlap import ahead
 
-        for k, res in zip(positions, ahead(results), strict=True):
-            self.warnings.extend(res.warnings)
-            self.notes.append(((r, k), res.name, res.estimate.contrast_note,
-                               bool(res.estimate.contrast_reliable)))
-            yield k, res
+        with closing(ahead(results)) as made:
+            for k, res in zip(positions, made, strict=True):
+                self.warnings.extend(res.warnings)
+                self.notes.append(((r, k), res.name, res.estimate.contrast_note,
+                                   bool(res.estimate.contrast_reliable)))
+                yield k, res
 
     def made(self) -> None:
         """One more unit complete (folder and record written)."""

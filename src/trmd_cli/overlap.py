@@ -72,7 +72,11 @@ def ahead(items: Iterable[T], depth: int = 1) -> Iterator[T]:
             yield obj
     finally:
         stop.set()
-        worker.join()
-        close = getattr(items, "close", None)
-        if close is not None:
-            close()  # a generator's own cleanup (open files) runs here, in the caller's thread
+        # an abandoned loop's generator can be finalised by the garbage collector on any
+        # thread, the producer's own included: that one cannot wait for itself, and stops at
+        # its next item as told (its items, still running there, close with it)
+        if threading.current_thread() is not worker:
+            worker.join()
+            close = getattr(items, "close", None)
+            if close is not None:
+                close()  # a generator's own cleanup (open files) runs here, in the caller's thread

@@ -246,22 +246,24 @@ def deblur(
         try:
             with atomic_dir(output) as tmp, progress_bar("deblurring", len(ins.source),
                                                          shown=not ins.single) as tick:
-                # the next frame is deblurred while this one is written
-                for res in ahead(deblur_frames(ins.source, est)):
-                    for w in res.warnings:
-                        warn(w)
-                    notes.add(res)
-                    folder = tmp
-                    if not ins.single:
-                        folder = tmp / frame_folder_name(res.name, res.index)
-                        folder.mkdir()
-                    info = write_result_folder(folder, res, bit_depth=bit_depth,
-                                               compare=compare, meta=meta)
-                    summary.append(info)
-                    if vw is not None:
-                        for img in res.frames:
-                            vw.append(img)
-                    tick()
+                # the next frame is deblurred while this one is written (closed here, not
+                # whenever the collector gets to it, when writing fails)
+                with contextlib.closing(ahead(deblur_frames(ins.source, est))) as results:
+                    for res in results:
+                        for w in res.warnings:
+                            warn(w)
+                        notes.add(res)
+                        folder = tmp
+                        if not ins.single:
+                            folder = tmp / frame_folder_name(res.name, res.index)
+                            folder.mkdir()
+                        info = write_result_folder(folder, res, bit_depth=bit_depth,
+                                                   compare=compare, meta=meta)
+                        summary.append(info)
+                        if vw is not None:
+                            for img in res.frames:
+                                vw.append(img)
+                        tick()
                 if not summary:
                     raise InputError("no frame to deblur", hint="check the inputs")
                 if not ins.single:

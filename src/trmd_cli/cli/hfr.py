@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from contextlib import closing
 from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
@@ -211,15 +212,17 @@ def hfr(
         lines = [timestamps_header(ins.binned)]
 
         def results():
-            for res in ahead(deblur_frames(ins.source, est, per_exposure=per_exposure)):
-                for w in res.warnings:
-                    warn(w)
-                contrast_notes.add(res)
-                if res.estimate.contrast is not None:
-                    contrasts.append(res.estimate.contrast)
-                clipped.append(clipped_fraction(res.frames))
-                tick()
-                yield res
+            with closing(ahead(deblur_frames(ins.source, est,
+                                             per_exposure=per_exposure))) as made:
+                for res in made:
+                    for w in res.warnings:
+                        warn(w)
+                    contrast_notes.add(res)
+                    if res.estimate.contrast is not None:
+                        contrasts.append(res.estimate.contrast)
+                    clipped.append(clipped_fraction(res.frames))
+                    tick()
+                    yield res
 
         with progress_bar("hfr", len(ins.source)) as tick:
             stream = hfr_stream(results(), ins.source.recording, fill_gaps=fill_gaps,
