@@ -141,3 +141,18 @@ def test_deconvolution_does_not_depend_on_the_thread_count(torch_threads, monkey
         torch_threads(n)
         out.append(deconvolve(blurry, motion).middle.numpy())
     assert np.array_equal(out[0], out[1])
+
+
+def test_map_shared_keeps_the_items_order(torch_threads):
+    seen: list[str] = []
+
+    def square(x: int) -> int:
+        seen.append(threading.current_thread().name)
+        return x * x
+
+    for n in (1, 2, 3):
+        torch_threads(n)
+        seen.clear()
+        assert threads.map_shared(square, range(7)) == [x * x for x in range(7)]
+        assert len({s.startswith("trmd-sparse") for s in seen}) == (1 if n == 1 else 2)
+    assert threads.map_shared(square, []) == []

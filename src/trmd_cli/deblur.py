@@ -25,7 +25,7 @@ from .errors import InputError
 from .events import Exposure
 from .methods import Estimate, Method, MethodConfig, window_model
 from .read.folders import BinnedSource, BinnedWindow, FrameWindow
-from .threads import product_threads, run_split
+from .threads import map_shared
 from .threshold import (
     INSTANTS,
     MIN_EVENTS,
@@ -184,13 +184,13 @@ def recording_contrast(source: Sequence, *, hot_pixels: bool = True,
     # the frames share out the energy's instants (frame i takes every len(kept)-th from i):
     # an evaluation then costs what one frame's does, and sees as many instants
     step = len(kept) if share_instants else 1
+    def objective(numbered):
+        i, (_, _, item) = numbered
+        return _objective(item, hot_pixels, INSTANTS[i % step::step])
+
     # the frames' objectives (sorting, tables and filters of 10⁴–10⁵ events each) on the
-    # process's threads, in frame order
-    parts = max(min(product_threads(), len(kept)), 1)
-    built = run_split(lambda p: [_objective(item, hot_pixels, INSTANTS[i % step::step])
-                                 for i, (_, _, item) in enumerate(kept) if i % parts == p],
-                      parts)
-    objs = [built[i % parts][i // parts] for i in range(len(kept))]
+    # process's threads
+    objs = map_shared(objective, enumerate(kept))
     used = [(item.frame.name, obj) for (_, _, item), obj in zip(kept, objs, strict=True)
             if obj is not None]
     if not used:

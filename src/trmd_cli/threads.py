@@ -20,7 +20,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-__all__ = ["RowBlocks", "product_threads", "run_split", "beside"]
+__all__ = ["RowBlocks", "product_threads", "run_split", "map_shared", "beside"]
 
 #: fewer stored entries than this: one product, no threads (their hand-off would cost more)
 MIN_SPLIT_NNZ = 200_000
@@ -61,6 +61,16 @@ def run_split(part, parts: int) -> list:
         if e is not None:
             raise e
     return [first] + [f.result() for f in futures]
+
+
+def map_shared(fn, items) -> list:
+    """``[fn(x) for x in items]``, the items shared out over :func:`product_threads` threads
+    (every n-th to each, so neighbours of similar cost go to different threads), the results
+    in the items' order."""
+    items = list(items)
+    parts = max(min(product_threads(), len(items)), 1)
+    shares = run_split(lambda p: [fn(x) for x in items[p::parts]], parts)
+    return [shares[i % parts][i // parts] for i in range(len(items))]
 
 
 class _Done:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..events import EventStream, Exposure
-from ..threads import product_threads, run_split
+from ..threads import map_shared
 from .cmax import (
     MIN_EVENTS,
     MotionSearch,
@@ -105,13 +105,9 @@ def tile_velocities(events: EventStream, exposure: Exposure,
         return float(q[0]), float(q[1])
 
     # the tiles on the process's threads (their candidate grids are arrays of 10⁵ entries,
-    # whose passes release the interpreter), every second tile to each
-    parts = max(min(product_threads(), len(voters)), 1)
-    shares = run_split(lambda p: [vote(idx) for _, idx in voters[p::parts]], parts)
-    out: dict[tuple[int, int], tuple[float, float]] = {}
-    for i, (k, _) in enumerate(voters):
-        out[(k // rows, k % rows)] = shares[i % parts][i // parts]
-    return out
+    # whose passes release the interpreter)
+    velocities = map_shared(vote, [idx for _, idx in voters])
+    return {(k // rows, k % rows): v for (k, _), v in zip(voters, velocities, strict=True)}
 
 
 def outvoted_tiles(votes: dict[tuple[int, int], tuple[float, float]], width: int, height: int,
