@@ -46,7 +46,7 @@ from .threads import RowBlocks, beside, product_threads, run_split
 __all__ = ["DeconvConfig", "ANCHOR_CONTRAST", "NOISE_SCALE", "BlurOperator", "deconvolve",
            "noise_level", "guard_weights", "Deconvolved", "data_weights", "agreement",
            "tile_gains", "tile_score", "trust_score", "motion_deblur", "MotionDeblur",
-           "explained", "change_of_log", "change_agreement", "CHANGE_SIGMA_PX",
+           "explained", "change_of_log", "predicted_change", "change_agreement", "CHANGE_SIGMA_PX",
            "CHANGE_TOLERANCE", "fit_contrast", "FIT_MIN_PIXELS", "FIT_MIN_SHARE",
            "FIT_MIN_CORRELATION"]
 
@@ -561,6 +561,17 @@ def change_of_log(events, exposure, width: int, height: int, contrast: float,
     return (contrast * s).reshape(height, width).astype(np.float32)
 
 
+def predicted_change(solved: Deconvolved) -> np.ndarray:
+    """The change of log intensity over the exposure a deconvolution predicts: its frame
+    carried to the exposure's two ends, ``log(L(1) + 0.02) − log(L(0) + 0.02)`` (the offset
+    keeps dark pixels' noise from dominating), (H, W) float32 (colour: the channels' mean)."""
+    ends = solved.frames([0.0, 1.0])
+    if ends.ndim == 4:
+        ends = ends.mean(-1)
+    ends = np.log(np.maximum(ends, 0.0) + np.float32(0.02))
+    return ends[1] - ends[0]
+
+
 def change_agreement(solved: Deconvolved, change: np.ndarray, contrast: float,
                      sigma_px: float = CHANGE_SIGMA_PX,
                      tolerance: float = CHANGE_TOLERANCE) -> np.ndarray:
@@ -582,11 +593,7 @@ def change_agreement(solved: Deconvolved, change: np.ndarray, contrast: float,
     """
     import cv2
 
-    ends = solved.frames([0.0, 1.0])
-    if ends.ndim == 4:
-        ends = ends.mean(-1)
-    ends = np.log(np.maximum(ends, 0.0) + np.float32(0.02))
-    miss = np.ascontiguousarray(ends[1] - ends[0] - change, np.float32)
+    miss = np.ascontiguousarray(predicted_change(solved) - change, np.float32)
     local = np.sqrt(np.maximum(cv2.GaussianBlur(miss * miss, (0, 0), sigma_px), 0.0))
     rejected = cv2.GaussianBlur((local > tolerance * contrast).astype(np.float32), (0, 0),
                                 sigma_px)
@@ -904,11 +911,7 @@ def fit_contrast(solved: Deconvolved, events, exposure, weight: np.ndarray,
     import cv2
 
     h, w = weight.shape
-    ends = solved.frames([0.0, 1.0])
-    if ends.ndim == 4:
-        ends = ends.mean(-1)
-    ends = np.log(np.maximum(ends, 0.0) + np.float32(0.02))
-    change = cv2.GaussianBlur(np.ascontiguousarray(ends[1] - ends[0]), (0, 0), sigma_px)
+    change = cv2.GaussianBlur(np.ascontiguousarray(predicted_change(solved)), (0, 0), sigma_px)
     count = cv2.GaussianBlur(change_of_log(events, exposure, w, h, 1.0, hot_mask), (0, 0),
                              sigma_px)
 
