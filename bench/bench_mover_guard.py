@@ -44,6 +44,7 @@ from trmd_cli.deconv import (  # noqa: E402
     deconvolve,
     explained,
     noise_level,
+    predicted_change,
 )
 from trmd_cli.methods import EdiMethod, MotionMethod  # noqa: E402
 from trmd_cli.metrics import psnr  # noqa: E402
@@ -60,9 +61,8 @@ def signed_test(solved, *, change: np.ndarray, sigma: float = 4.0, tau: float = 
                 ) -> np.ndarray:
     """(H, W) in [0, 1]: the difference of the predicted and measured changes smoothed by a
     σ = ``sigma`` Gaussian, rejected beyond ``tau`` (the rejection spread the same way)."""
-    f0, f1 = solved.frames([0.0, 1.0])
-    predicted = np.log(np.maximum(f1, 0.0) + 0.02) - np.log(np.maximum(f0, 0.0) + 0.02)
-    miss = np.abs(cv2.GaussianBlur((predicted - change).astype(np.float32), (0, 0), sigma))
+    miss = np.abs(cv2.GaussianBlur((predicted_change(solved) - change).astype(np.float32),
+                                   (0, 0), sigma))
     rejected = cv2.GaussianBlur((miss > tau).astype(np.float32), (0, 0), sigma)
     return (1.0 - np.clip(2.0 * rejected, 0.0, 1.0)).astype(np.float32)
 
