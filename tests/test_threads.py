@@ -3,6 +3,8 @@ before a result or an error comes back; the blur matrix built in bands is the on
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
 
@@ -156,3 +158,12 @@ def test_map_shared_keeps_the_items_order(torch_threads):
         assert threads.map_shared(square, range(7)) == [x * x for x in range(7)]
         assert len({s.startswith("trmd-sparse") for s in seen}) == (1 if n == 1 else 2)
     assert threads.map_shared(square, []) == []
+
+
+def test_thread_count_does_not_load_torch():
+    # a process reading events only is not made to import torch (a second) for the count
+    code = ("import sys, os; from trmd_cli import threads; n = threads.product_threads(); "
+            "assert 'torch' not in sys.modules; "
+            "assert n == max(1, min(len(os.sched_getaffinity(0)), 4)), n; "
+            "import torch; torch.set_num_threads(1); assert threads.product_threads() == 1")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -16,6 +16,7 @@ caller has a thread of its own.
 from __future__ import annotations
 
 import os
+import sys
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -32,10 +33,16 @@ _SIDE: dict[int, ThreadPoolExecutor] = {}
 def product_threads() -> int:
     """Threads for one product: torch's thread count (what ``--threads`` and ``--jobs`` set for
     this process), at most 4 (a product takes a few milliseconds; finer parts cost their
-    hand-offs, and more than two were not measured)."""
-    import torch
-
-    return max(1, min(int(torch.get_num_threads()), 4))
+    hand-offs, and more than two were not measured). A process that has not loaded torch
+    (reading events alone) is not made to load it (a second's import): it counts the cores it
+    may run on, which is torch's own default."""
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        count = int(torch.get_num_threads())
+    else:
+        count = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else \
+            (os.cpu_count() or 1)
+    return max(1, min(count, 4))
 
 
 def _pool(threads: int) -> ThreadPoolExecutor:

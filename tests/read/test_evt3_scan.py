@@ -8,13 +8,16 @@ events written and against the ``evt3`` decoder run over the whole file.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
 from tests.helpers.data import SHARED, assert_events, needs_shared
+from trmd_cli import threads
 from trmd_cli.errors import FormatError
 from trmd_cli.events import Exposure
-from trmd_cli.read import ReadOptions, evt3_words
+from trmd_cli.read import ReadOptions, evt3_words, prophesee
 from trmd_cli.read import chunked as chunked_mod
 from trmd_cli.read.prophesee import Evt3Recording
 
@@ -128,6 +131,46 @@ def test_lazy_reads_equal_the_written_events(tmp_path, monkeypatch):
         assert_events(g, t[m], x[m], y[m], p[m])
 
 
+def test_whole_file_first_does_not_wait_for_the_index(tmp_path, monkeypatch):
+    # the scan runs beside the first read; the whole file read first decodes meanwhile and
+    # gives what the decoder gives, and the index is right once it is there
+    rng = np.random.default_rng(8)
+    path, (t, x, y, p) = write_evt3(tmp_path / "f.raw", rng, groups=2500, wide_steps=True)
+    monkeypatch.setattr(evt3_words, "SCAN_WORDS", 512)
+    decoding = threading.Event()
+    decode, scan = evt3.decode_file, prophesee.scan_evt3
+
+    def watched_decode(*args, **kwargs):
+        decoding.set()
+        return decode(*args, **kwargs)
+
+    def slow_scan(*args):
+        # finishes only once the decoder has started: a read that waited for the index
+        # first would leave this to time out
+        assert decoding.wait(10), "the whole file's read waited for the scan"
+        return scan(*args)
+
+    monkeypatch.setattr(evt3, "decode_file", watched_decode)
+    monkeypatch.setattr(prophesee, "scan_evt3", slow_scan)
+    monkeypatch.setattr(threads, "product_threads", lambda: 2)
+    rec = Evt3Recording(path, ReadOptions(), eager_bytes=0)
+    assert_events(rec.events(), t, x, y, p)
+    assert len(rec._ordinal) > 20
+    assert rec.time_range_us() == (int(t[0]), int(t[-1]))
+    assert rec.warnings == []
+
+
+def test_large_body_without_time_words_is_refused_when_read(tmp_path):
+    import struct
+
+    head = b"% evt 3.0\n% geometry 64x48\n% end\n"
+    bad = tmp_path / "stray.raw"
+    bad.write_bytes(head + struct.pack("<4H", 0x0001, 0x2002, 0x0003, 0x2004))
+    rec = Evt3Recording(bad, ReadOptions(), eager_bytes=0)
+    with pytest.raises(FormatError, match="promises EVT 3.0 .* no event and no time word"):
+        rec.events()
+
+
 def test_every_start_point_resumes_exactly(tmp_path, monkeypatch):
     rng = np.random.default_rng(4)
     path, (t, x, y, p) = write_evt3(tmp_path / "r.raw", rng, groups=1500)
@@ -170,9 +213,15 @@ def _clock_back(tmp_path, steps):
 
 def test_clock_going_back_is_refused(tmp_path, monkeypatch):
     monkeypatch.setattr(evt3_words, "SCAN_WORDS", 512)
-    # far back: the segments' time bounds go back, seen on opening
-    with pytest.raises(FormatError, match="clock goes back in time near word"):
-        Evt3Recording(_clock_back(tmp_path, 100), ReadOptions(), eager_bytes=0)
+    # far back: the segments' time bounds go back, seen by the scan started on opening, as
+    # soon as anything is read (the whole file too, which does not wait for the index)
+    far = _clock_back(tmp_path, 100)
+    for read in (lambda r: r.time_range_us(), lambda r: r.events(), lambda r: r.warnings):
+        rec = Evt3Recording(far, ReadOptions(), eager_bytes=0)
+        with pytest.raises(FormatError, match="clock goes back in time near word"):
+            read(rec)
+        with pytest.raises(FormatError, match="clock goes back in time near word"):
+            rec.num_events()  # and again on the next request
     # a little: the events' times go back, seen when they are decoded
     with pytest.raises(FormatError, match="goes back in time"):
         Evt3Recording(_clock_back(tmp_path, 2), ReadOptions(), eager_bytes=0).events()

@@ -30,7 +30,8 @@ Decoders:
   Small files are decoded when opened. Larger ones open on a scan of their raw words, which
   finds the points where a fresh decoder can start (a TIME_HIGH word, with the clock's wraps,
   the row and the vector column there): they are decoded once, when read, and windows far into
-  the file are reached without decoding what comes before.
+  the file are reached without decoding what comes before. The scan runs beside the first read:
+  a read of the whole file decodes meanwhile.
 
 Both numpy decoders agree event for event with expelliarmus on the shared recordings (tests).
 """
@@ -41,6 +42,7 @@ import contextlib
 import os
 import re
 import sys
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +52,7 @@ import numpy as np
 
 from ..errors import FormatError
 from ..events import EventStream
+from ..threads import beside
 from .base import ReadOptions
 from .chunked import IN_ORDER_HINT, Chunk, ChunkedRecording, ChunkSummary, time_slice
 from .evt3_words import Evt3Scan, resume_prefix, scan_evt3
@@ -804,6 +807,33 @@ def read_dat(path: Path, options: ReadOptions) -> DatRecording:
 # -- EVT 3.0 ---------------------------------------------------------------------------------
 
 
+class _AfterScan:
+    """An attribute of :class:`Evt3Recording` that a scan still running may yet set or change
+    (the index, the warnings): reading it waits for the scan."""
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.key = "_scanned" + name
+
+    def __get__(self, obj, owner=None):
+        if obj is None:
+            return self
+        obj._settle_scan()
+        return obj.__dict__[self.key]
+
+    def __set__(self, obj, value) -> None:
+        obj.__dict__[self.key] = value
+
+
+class _Failed:
+    """A scan that raised: ``result()`` raises its error again."""
+
+    def __init__(self, error: Exception) -> None:
+        self.error = error
+
+    def result(self):
+        raise self.error
+
+
 class Evt3Recording(ChunkedRecording):
     """An EVT 3.0 .raw file, decoded by the ``evt3`` package.
 
@@ -813,10 +843,20 @@ class Evt3Recording(ChunkedRecording):
     words give each segment's time bounds, the clock's wraps and points the decoder can start
     at), so they are decoded once, as they are read; their events are checked (times in order,
     coordinates inside the sensor) as each segment is decoded, and the event count is known
-    only after a pass (``num_events`` makes one).
+    only after a pass (``num_events`` makes one). That scan runs on a thread of its own
+    (:func:`~trmd_cli.threads.beside`) while the caller goes on: what needs the index, or the
+    warnings, waits for it, and what it refuses (no time word, the clock going back) is raised
+    by the first read; the whole file, read first, is decoded meanwhile (the decoder releases
+    the interpreter), which costs the scan's fifth of a decoding no more.
     """
 
     gathers = True
+    _scan = _AfterScan()
+    _ordinal = _AfterScan()
+    _first = _AfterScan()
+    _last = _AfterScan()
+    _resume = _AfterScan()
+    warnings = _AfterScan()
 
     def __init__(self, path: Path, options: ReadOptions, batch_bytes: int = EVT3_CHUNK_BYTES,
                  eager_bytes: int | None = None):
@@ -834,25 +874,30 @@ class Evt3Recording(ChunkedRecording):
         self.header = header
         self._batch_bytes = int(batch_bytes)
         self._words = words = _whole_records(path, header.data_offset, 2, "16-bit word")
-        scan = scan_evt3(path, header.data_offset, words)
-        if words and scan.first_time_word < 0:
-            # the decoder decodes no event before the first TIME_HIGH (type 0x8, sent every
-            # 4 ms whatever the scene): bytes without one are not a recording
-            raise FormatError(f"the header promises EVT 3.0 but its {2 * words}-byte body holds "
-                              "no event and no time word", path=path, hint=_DAMAGED)
         eager = EVT3_EAGER_BYTES if eager_bytes is None else int(eager_bytes)
-        self._scan: Evt3Scan | None = None
         self._range: tuple[int, int] | None = None
         self._events: int | None = None
-        if 2 * words <= eager or width is None or height is None:
-            self._build_index()
-        else:
-            self._scan = scan
+        self._lazy = not (2 * words <= eager or width is None or height is None)
+        self._scan_lock = threading.RLock()
+        if self._lazy:
+            # the scan runs beside whatever is read first: a read of the whole file needs no
+            # index and decodes meanwhile (the decoder releases the interpreter); anything
+            # that needs the index waits for it (:class:`_AfterScan`)
             self.gathers = False
-            self._ordinal = np.arange(len(scan.starts), dtype=np.int64)
-            self._first, self._last = scan.lo_us, scan.hi_us
-            self._resume = [(int(a), int(w)) for a, w in zip(scan.starts, scan.wraps,
-                                                             strict=True)]
+            self._pending = beside(scan_evt3, path, header.data_offset, words)
+        else:
+            self._pending = None
+            self._take_scan(scan_evt3(path, header.data_offset, words))
+            self._build_index()
+
+    def _take_scan(self, scan: Evt3Scan) -> None:
+        """What the scan says of the file: refused without a time word, its undefined words
+        noted, and (opened lazily) the index of its segments."""
+        if self._words and scan.first_time_word < 0:
+            # the decoder decodes no event before the first TIME_HIGH (type 0x8, sent every
+            # 4 ms whatever the scene): bytes without one are not a recording
+            raise FormatError(f"the header promises EVT 3.0 but its {2 * self._words}-byte body "
+                              "holds no event and no time word", path=self.path, hint=_DAMAGED)
         if scan.undefined:
             count, first, kinds = scan.undefined
             self.warnings.append(
@@ -860,6 +905,27 @@ class Evt3Recording(ChunkedRecording):
                 f"{', '.join(f'0x{k:X}' for k in kinds)}, which EVT 3.0 does not define, were "
                 f"skipped (the first is word {first}): a damaged file? the events around them "
                 "may be wrong")
+        if self._lazy:
+            self._scan = scan
+            self._ordinal = np.arange(len(scan.starts), dtype=np.int64)
+            self._first, self._last = scan.lo_us, scan.hi_us
+            self._resume = [(int(a), int(w)) for a, w in zip(scan.starts, scan.wraps,
+                                                             strict=True)]
+        else:
+            self._scan = None
+
+    def _settle_scan(self) -> None:
+        """Wait for the scan started on opening (once; its error, if any, every time)."""
+        with self._scan_lock:
+            pending = self.__dict__.get("_pending")
+            if pending is None:
+                return
+            self._pending = None  # (taking the scan reads the warnings: no second wait)
+            try:
+                self._take_scan(pending.result())
+            except FormatError as e:
+                self._pending = _Failed(e)
+                raise
 
     @contextlib.contextmanager
     def _decoder_errors(self) -> Iterator[None]:
@@ -872,7 +938,7 @@ class Evt3Recording(ChunkedRecording):
 
     def _decode(self, start: int = 0, resume: Any = None) -> Iterator[Chunk]:
         with self._decoder_errors():
-            if self._scan is not None:
+            if self._lazy:
                 yield from self._decode_segments(start)
                 return
             batches = self._evt3.decode_file_batches(str(self.path), batch_bytes=self._batch_bytes)
@@ -936,7 +1002,7 @@ class Evt3Recording(ChunkedRecording):
             return next(source)
 
     def time_range_us(self) -> tuple[int, int]:
-        if self._scan is None:
+        if not self._lazy:
             return super().time_range_us()
         if self._range is None:
             with contextlib.closing(self._decode(0)) as source:
@@ -954,13 +1020,13 @@ class Evt3Recording(ChunkedRecording):
         return self._range
 
     def is_empty(self) -> bool:
-        if self._scan is None:
+        if not self._lazy:
             return super().is_empty()
         self.time_range_us()
         return self._events == 0
 
     def num_events(self) -> int:
-        if self._scan is None:
+        if not self._lazy:
             return super().num_events()
         if self._events is None:
             with contextlib.closing(self._decode(0)) as source:
@@ -968,22 +1034,17 @@ class Evt3Recording(ChunkedRecording):
         return self._events
 
     def events(self, start_us: float | None = None, end_us: float | None = None) -> EventStream:
-        if self._scan is None:
+        if not self._lazy:
             return super().events(start_us, end_us)
         lo = -np.inf if start_us is None else start_us
         hi = np.inf if end_us is None else end_us
+        if start_us is None and end_us is None:
+            return self._whole(lo, hi)  # no index needed: decoded while the scan runs
         sel = np.flatnonzero((self._last >= lo) & (self._first < hi))
         if len(sel) <= 2:
             return super().events(start_us, end_us)
         if sel[0] == 0 and sel[-1] == len(self._ordinal) - 1:
-            # the whole file: the decoder's one call writes straight into the arrays returned
-            with self._decoder_errors():
-                ch = self._chunk(0, self._evt3.decode_file(str(self.path)), 0)
-            if len(ch.t):
-                self._check(ch, -1)
-            self._events = len(ch.t)
-            ev = EventStream(ch.x, ch.y, ch.t, ch.p, self.width, self.height)
-            return ev.take(time_slice(ev.t, lo, hi))
+            return self._whole(lo, hi)
         # a long span: each segment's part as it is decoded, joined at the end (the windows
         # kept for requests that move forward would hold the whole span a second time)
         parts: list[Chunk] = []
@@ -993,6 +1054,18 @@ class Evt3Recording(ChunkedRecording):
                 if ch.ordinal >= sel[-1]:
                     break
         return self._window(parts, lo, hi)
+
+    def _whole(self, lo: float, hi: float) -> EventStream:
+        """The events of the whole file within ``[lo, hi)``: the decoder's one call writes
+        straight into the arrays returned."""
+        with self._decoder_errors():
+            ch = self._chunk(0, self._evt3.decode_file(str(self.path)), 0)
+        self._settle_scan()  # what the scan refuses (no time word, the clock going back) first
+        if len(ch.t):
+            self._check(ch, -1)
+        self._events = len(ch.t)
+        ev = EventStream(ch.x, ch.y, ch.t, ch.p, self.width, self.height)
+        return ev.take(time_slice(ev.t, lo, hi))
 
 
 def read_evt3(path: Path, options: ReadOptions) -> Evt3Recording:
