@@ -406,8 +406,10 @@ def deconvolve(blurry: np.ndarray, motion, config: DeconvConfig | None = None,
     b = np.ascontiguousarray(blurry, np.float32).reshape(h * w, c)
     x = op.pad_frame(blurry if start is None else start).numpy().transpose(1, 2, 0)
     x = np.ascontiguousarray(x, np.float32)
-    # A² for the Jacobi preconditioner's data term, diag(Aᵀ diag(d) A) = (A²)ᵀ d
-    sq_t = op.matrix_t.multiply(op.matrix_t).tocsr()
+    # A² for the Jacobi preconditioner's data term, diag(Aᵀ diag(d) A) = (A²)ᵀ d: Aᵀ's
+    # entries squared in place of a copy (merged entries, so each is one tap's whole weight)
+    sq_t = op.matrix_t.copy()
+    np.square(sq_t.data, out=sq_t.data)
     aw = np.zeros((hp, wp, 1), np.float32)
     if anchor is not None and cfg.anchor > 0:
         # only the sensor is read by the anchor: what moved into view stays B's to explain
