@@ -404,8 +404,15 @@ class ChunkedRecording(Recording):
                 # own first and last times) lets the first run past it, a later one start
                 # before it
                 cuts = [(held[k], time_slice(held[k].t, lo[i], hi[i])) for k in range(a, b + 1)]
-                yield self._window([Chunk(c.ordinal, c.x[s], c.y[s], c.t[s], c.p[s])
-                                    for c, s in cuts], -np.inf, np.inf)
+                cuts = [(c, s) for c, s in cuts if s.stop > s.start]
+                if not cuts:
+                    yield EventStream.empty(width, height)
+                elif len(cuts) == 1:
+                    c, s = cuts[0]
+                    yield EventStream(c.x[s], c.y[s], c.t[s], c.p[s], width, height)
+                else:  # the slices joined straight into the window's arrays
+                    yield EventStream(*(np.concatenate([getattr(c, k)[s] for c, s in cuts])
+                                        for k in "xytp"), width, height)
         finally:
             if source is not None:
                 source.close()  # type: ignore[attr-defined]
