@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from trmd_cli import deconv
 from trmd_cli.deconv import (
     ANCHOR_CONTRAST,
     NOISE_SCALE,
@@ -161,6 +162,46 @@ def test_guard_trusts_an_exact_motion_and_drops_a_wrong_one():
     assert guard_weights(d.data_weight, 2.0).mean() < 0.2
     # no confidence in the motion: nothing is kept
     assert guard_weights(np.ones((H, W), np.float32), 1.05).max() == 0.0
+
+
+def test_stop_ends_the_solve_with_the_frame_so_far():
+    """``stop`` is asked before each reweighted round (1, then 2 of 3) with the weights the
+    frame so far earns; True there gives that frame, re-blurred, with exactly those weights
+    (the residual of its own re-blur); never True gives the solve without ``stop``, bit for
+    bit."""
+    op = BlurOperator(MOTION, W, H)
+    hp, wp = op.canvas
+    big = texture(hp, wp, seed=3).astype(np.float32)
+    blurry = op.apply(torch.from_numpy(big)[None])[0].numpy()
+    sharp = big[op.pad:op.pad + H, op.pad:op.pad + W]
+    edi = (sharp + 0.03 * np.random.default_rng(5).standard_normal(sharp.shape)).astype(
+        np.float32)
+    cfg = DeconvConfig(anchor=0.01)
+    full = deconvolve(blurry, MOTION, cfg, start=edi, anchor=edi)
+    asked, seen = [], []
+
+    def never(k, weights):
+        asked.append(k)
+        return False
+
+    same = deconvolve(blurry, MOTION, cfg, start=edi, anchor=edi, stop=never)
+    assert asked == [1, 2] and same.rounds == full.rounds == 3
+    assert np.array_equal(same.middle.numpy(), full.middle.numpy())
+    assert np.array_equal(same.data_weight, full.data_weight)
+
+    def first(k, weights):
+        seen.append(weights.copy())
+        return True
+
+    early = deconvolve(blurry, MOTION, cfg, start=edi, anchor=edi, stop=first)
+    assert early.rounds == 1 and len(seen) == 1
+    assert np.array_equal(early.data_weight, seen[0])
+    again = op.apply(early.middle)[0].numpy()
+    np.testing.assert_allclose(early.reblurred, again, atol=1e-6)
+    np.testing.assert_allclose(data_weights(again - blurry, blurry, cfg.outlier, cfg.window_px),
+                               seen[0], atol=1e-5)
+    # one round is not the solve: the frame differs from the three rounds'
+    assert not np.allclose(early.middle.numpy(), full.middle.numpy(), atol=1e-4)
 
 
 def test_tile_gains_tell_the_direction_of_time():
@@ -330,20 +371,31 @@ def test_estimated_threshold_is_refitted_for_edis_frames():
     assert given.fallback_contrast is None
 
 
-def test_background_motion_when_the_estimate_follows_a_mover():
+def test_background_motion_when_the_estimate_follows_a_mover(monkeypatch):
     """A foreground patch moving on its own, where the global estimate explains less than
     half of the frame: the motion of the tiles that move together is deconvolved where it
     predicts the events (measured: EDI 29.20 / 28.59, motion 31.67 / 31.73 dB, middle /
-    sequence; with EDI's frames alone before)."""
+    sequence; with EDI's frames alone before). The global estimate's deconvolution, which
+    explains almost nothing, stops after its first round (c given: no refit needs it)."""
     motion = MotionRanges(translation_px=14, rotation_deg=0.5, scale=0.01, perspective=0,
                           curvature=0.2, foreground_prob=1.0, max_layers=1,
                           layer_translation_px=30, layer_size=(0.3, 0.45))
     s = make_sample(texture(300, 400, seed=6), size=(160, 120), rng=np.random.default_rng(6),
                     motion=motion, sensor=SensorConfig.clean(0.2), read_noise=0.003)
     edi = EdiMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
+    solved, original = [], deconv.deconvolve
+
+    def spy(*args, **kwargs):
+        solved.append(original(*args, **kwargs))
+        return solved[-1]
+
+    monkeypatch.setattr("trmd_cli.deconv.deconvolve", spy)
     mot = MotionMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
+    monkeypatch.undo()
     assert any("tiles that move together" in note for note in mot.notes), mot.notes
     assert psnr(mot.frames[3], s.sharp[3]) > psnr(edi.frames[3], s.sharp[3]) + 1.5
+    assert solved[0].rounds == 1, "the global motion explains ~0 %: stopped after one round"
+    assert solved[1].rounds == 3
     assert _seq(mot.frames, s.sharp) > _seq(edi.frames, s.sharp) + 2
     # a colour frame takes the same way, its unscaled channel as well restored
     rgb = np.stack([s.blurry, 0.9 * s.blurry, 0.8 * s.blurry], -1).astype(np.float32)

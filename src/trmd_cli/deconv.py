@@ -327,12 +327,15 @@ class Deconvolved:
         reblurred: (H, W[, 3]) float32, ``A`` of the result (compare with B).
         data_weight: (H, W) float32 [0, 1], how much each pixel of B counted in the last
             round (1 everywhere without reweighting; 0 = the motion does not explain it).
+        rounds: the IRLS rounds solved (fewer than asked when ``deconvolve``'s ``stop``
+            ended it).
     """
 
     operator: BlurOperator
     middle: object
     reblurred: np.ndarray
     data_weight: np.ndarray | None = None
+    rounds: int = 0
 
     def frames(self, fractions) -> np.ndarray:
         """The middle frame warped to ``fractions`` of the exposure: (K, H, W[, 3]) float32."""
@@ -386,7 +389,7 @@ def data_weights(residual: np.ndarray, blurry: np.ndarray, outlier: tuple[float,
 
 def deconvolve(blurry: np.ndarray, motion, config: DeconvConfig | None = None,
                start: np.ndarray | None = None, fractions=None,
-               anchor: np.ndarray | None = None) -> Deconvolved:
+               anchor: np.ndarray | None = None, stop=None) -> Deconvolved:
     """Recover the middle frame of ``blurry`` (H, W[, 3]) float32 along ``motion``.
 
     ``start`` (H, W[, 3]): the first guess (default: B itself), e.g. EDI's middle frame;
@@ -395,6 +398,11 @@ def deconvolve(blurry: np.ndarray, motion, config: DeconvConfig | None = None,
     ``config.anchor``; with it, from the second round on, pixels of B that re-blurring does not
     explain lose their data weight (:func:`data_weights`, ``config.outlier``), so the frame
     follows the anchor where the motion is wrong instead of smearing the misfit around.
+    ``stop``: ``(k, data_weight) -> bool``, asked before reweighted round ``k`` (1, 2, …) with
+    the (H, W) data weights the frame so far earns; True ends the solve there, the result
+    that frame with those weights (:attr:`Deconvolved.rounds` says how many rounds ran). For
+    a caller that discards a motion explaining too little of B: the rounds left would not
+    change that verdict, only cost its time.
     """
     import torch
 
@@ -422,11 +430,17 @@ def deconvolve(blurry: np.ndarray, motion, config: DeconvConfig | None = None,
     reweight = ae is not None and cfg.outlier is not None
     d = np.ones((h * w, 1), np.float32)
     lam, eps = float(cfg.penalty), float(cfg.huber)
+    solved = max(cfg.rounds, 1)
+    re = None
     for k in range(max(cfg.rounds, 1)):
         if k > 0 and reweight:
-            res = (op.apply_np(x.reshape(hp * wp, c)) - b).reshape(h, w, c)
+            re = op.apply_np(x.reshape(hp * wp, c)).reshape(h, w, c)
+            res = re - b.reshape(h, w, c)
             d = data_weights(res[..., 0] if c == 1 else res, blurry, cfg.outlier,
                              cfg.window_px).reshape(h * w, 1)
+            if stop is not None and stop(k, d.reshape(h, w)):
+                solved = k
+                break
         if k == 0 or reweight:
             rhs = op.adjoint_np(d * b).reshape(hp, wp, c)
             if ae is not None:
@@ -459,14 +473,15 @@ def deconvolve(blurry: np.ndarray, motion, config: DeconvConfig | None = None,
         dia[:, 1:] += lw[:, :-1]
         dia[1:] += lw[:-1]
         x = _pcg(normal, rhs, x, 1.0 / np.maximum(dia, 1e-12), cfg.iterations)
-    re = op.apply_np(x.reshape(hp * wp, c)).reshape(h, w, c)
+    if solved == max(cfg.rounds, 1):
+        re = op.apply_np(x.reshape(hp * wp, c)).reshape(h, w, c)
     re = re[..., 0] if blurry.ndim == 2 else re
-    if reweight:
+    if reweight and solved == max(cfg.rounds, 1):
         # the weights the final frame earns (the last round used the previous frame's)
         d = data_weights(re - blurry, blurry, cfg.outlier, cfg.window_px).reshape(h * w, 1)
     middle = torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1)))
     return Deconvolved(op, middle, np.ascontiguousarray(re, dtype=np.float32),
-                       np.ascontiguousarray(d.reshape(h, w), dtype=np.float32))
+                       np.ascontiguousarray(d.reshape(h, w), dtype=np.float32), solved)
 
 
 def _pcg(normal, rhs: np.ndarray, x: np.ndarray, inv_diag: np.ndarray,
@@ -624,6 +639,13 @@ def tile_score(tile_gain: np.ndarray, width: int, height: int, tile: int = 16) -
 #: least mean guard weight (share of the frame the motion explains) for the deconvolution to
 #: be used at all
 MIN_SHARE = 0.5
+
+#: the share of the frame (mean guard weight) under which the deconvolution along the global
+#: motion stops before IRLS round k (of 3): its verdict, under :data:`MIN_SHARE`, would not
+#: change. The share rose by at most 0.14 after round 1 and 0.05 after round 2 on 24 frames
+#: with independent movers (0.05 and 0.005 on the 48 pinned frames); a stop there saves two
+#: thirds or a third of that deconvolution where the second chance follows
+EARLY_SHARE = {1: 0.3, 2: 0.4}
 
 #: least mean weight of the background's motion (:func:`change_agreement` times
 #: :func:`explained`) for its deconvolution to be used where one global motion did not hold
@@ -806,9 +828,21 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
                                                                 (reason,))
     # the tiles' gains need only the motion: measured beside the deconvolution
     gains_later = beside(tile_gains, motion, *window_points(events, exposure, hot_mask), w, h)
-    d = deconvolve(blurry, motion, cfg, start=edi_middle, anchor=edi_middle)
+
+    def hopeless(k: int, data_weight: np.ndarray) -> bool:
+        floor = EARLY_SHARE.get(k)
+        return floor is not None and float(guard_weights(
+            data_weight, motion.confidence, gains_later.result()).mean()) < floor
+
+    # an estimate that plainly explains too little is let go early, unless its frame is
+    # wanted whole: a given path's is reused for the background's deconvolution below, and
+    # the c refitted to the deconvolution (``edi_at``) needs the last round's frame (fitted
+    # to the first round's, it cost 0.27 dB on two frames with movers that stop there)
+    refit = edi_at is not None and contrast is not None
+    d = deconvolve(blurry, motion, cfg, start=edi_middle, anchor=edi_middle,
+                   stop=None if given or refit else hopeless)
     gains = gains_later.result()
-    if edi_at is not None and contrast is not None:
+    if refit:
         # where re-blurring explains B the deconvolution's change of log over the exposure is
         # right even when the guard does not keep the motion: the c it implies is EDI's, in
         # every frame blended in below and every fallback
