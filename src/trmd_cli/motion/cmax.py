@@ -385,7 +385,8 @@ def estimate_motion(events: EventStream, exposure: Exposure,
         hot_mask: (H, W) bool pixels whose events are ignored.
         search: search ranges (default :class:`MotionSearch`).
         start: a velocity (pixels per exposure) known to be near the answer: the search
-            starts there instead of on the velocity grid.
+            starts there instead of on the velocity grid, and takes rotation and zoom up
+            at 2× at once (one way to full resolution, not two).
     Returns:
         the motion, with ``confidence`` its contrast gain at full resolution over no motion;
         zero motion with confidence 0 when the window holds fewer than :data:`MIN_EVENTS`.
@@ -437,7 +438,11 @@ def estimate_motion(events: EventStream, exposure: Exposure,
     mid = _Level(x[half], y[half], u[half], w, h, 2.0, centre, radius)
     fine = _Level(x, y, u, w, h, 1.0, centre, radius)
     free = 6 if search.rotation_zoom else 4
-    tries = [refine(fine, refine(mid, q, f, 0.5), free, 0.25) for f in sorted({4, free})]
+    # from a given velocity (the background's, after the first estimate) only the first
+    # way: on the frames with movers its estimate was the same to 0.01 dB and 0.04–0.1 s
+    # faster
+    ways = sorted({free}) if start is not None else sorted({4, free})
+    tries = [refine(fine, refine(mid, q, f, 0.5), free, 0.25) for f in ways]
     q = max(tries, key=fine.gain)
     if search.rotation_zoom and search.max_perspective > 0:
         # the perspective last, from the six-parameter optimum, and kept only when it
