@@ -24,6 +24,7 @@ from ..errors import FormatError, InputError
 from ..events import EventStream, Exposure, make_stream
 from ..units import to_microseconds
 from .base import Frame, ReadOptions, Recording
+from .hdf5_strings import read_attr
 
 __all__ = ["read_hdf5", "HDF5Recording"]
 
@@ -101,7 +102,7 @@ class HDF5Recording(Recording):
             raise FormatError("event datasets differ in length "
                               f"({', '.join(f'{k}: {ev[k].shape[0]}' for k in keys)})",
                               path=path, hint="x, y, t and p need one entry per event")
-        self.layout = ("trmd" if f.attrs.get("format") in ("trmd", b"trmd")
+        self.layout = ("trmd" if read_attr(f, "format") in ("trmd", b"trmd")
                        else "event_utils" if keys[0] == "xs" else "dsec")
         self._unit = options.time_unit
         if self._unit is None:
@@ -119,9 +120,9 @@ class HDF5Recording(Recording):
             if options.sensor is not None:
                 width, height = options.sensor
             elif "width" in f.attrs and "height" in f.attrs:
-                width, height = int(f.attrs["width"]), int(f.attrs["height"])
+                width, height = int(read_attr(f, "width")), int(read_attr(f, "height"))
             elif "sensor_resolution" in f.attrs:
-                height, width = (int(v) for v in f.attrs["sensor_resolution"][:2])
+                height, width = (int(v) for v in read_attr(f, "sensor_resolution")[:2])
             elif "frames/blurry" in f:
                 height, width = f["frames/blurry"].shape[1:3]
             elif options.frame_size is not None:

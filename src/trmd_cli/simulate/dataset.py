@@ -267,17 +267,19 @@ class H5SampleDataset(_torch_dataset_base()):  # type: ignore[misc]
     def __init__(self, path: str | Path, n: int | None = None, levels: bool = False):
         import h5py
 
+        from ..read.hdf5_strings import read_attr
+
         self.path = Path(path)
         self.levels = bool(levels)
         try:
             with h5py.File(self.path, "r") as f:
-                if f.attrs.get("format") != "trmd" or "frames" not in f \
+                if read_attr(f, "format") != "trmd" or "frames" not in f \
                         or "blurry" not in f["frames"]:
                     raise FormatError("not a trmd HDF5 file with frames/blurry", path=path,
                                       hint="write one with `trmd simulate`")
                 g = f["frames"]
                 self._len = int(g["blurry"].shape[0])
-                self.width, self.height = int(f.attrs["width"]), int(f.attrs["height"])
+                self.width, self.height = int(read_attr(f, "width")), int(read_attr(f, "height"))
                 self.has_sharp = "sharp" in g
                 self.starts = g["exposure_start"][:].astype(np.int64)
                 self.ends = g["exposure_end"][:].astype(np.int64)

@@ -68,9 +68,11 @@ def detect_kind(path: Path) -> str:
                          hint="pass an image folder or an HDF5 set from `trmd simulate`")
     import h5py
 
+    from ..read.hdf5_strings import read_attr
+
     try:
         with h5py.File(path, "r") as f:
-            if f.attrs.get("format") == "trmd":
+            if read_attr(f, "format") == "trmd":
                 if "frames" not in f or "blurry" not in f["frames"]:
                     raise FormatError("trmd HDF5 without frames/blurry: events only, no samples",
                                       path=path, hint="write a training set with `trmd simulate`")

@@ -1,0 +1,111 @@
+"""String attributes of HDF5 files: a damaged global heap is reported, not looped on."""
+
+from __future__ import annotations
+
+import struct
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+from trmd_cli.events import Exposure, make_stream
+from trmd_cli.read.hdf5_strings import DamagedHeap, _heap_address, check_heap, read_attr
+from trmd_cli.write import write_h5
+
+
+def _trmd_file(path):
+    rng = np.random.default_rng(3)
+    s = make_stream(rng.integers(0, 64, 40), rng.integers(0, 48, 40),
+                    np.sort(rng.integers(0, 10_000, 40)), rng.integers(0, 2, 40), 64, 48)
+    write_h5(path, s, blurry=np.full((2, 48, 64), 0.5, np.float32),
+             exposures=[Exposure(0, 4000), Exposure(5000, 9000)])
+    return path
+
+
+def _zero_first_heap_object(path) -> int:
+    """Set the size of the first object of the file's global heap to 0: the walk then steps
+    into the string's bytes and onto a free-space entry of size 0 (the HDF5 library loops
+    there forever). Returns the collection's address."""
+    raw = bytearray(path.read_bytes())
+    at = raw.find(b"GCOL")
+    assert at > 0 and struct.unpack_from("<H", raw, at + 16)[0] == 1
+    raw[at + 24:at + 32] = bytes(8)
+    path.write_bytes(bytes(raw))
+    return at
+
+
+@pytest.mark.parametrize("libver", ["earliest", "latest"])
+def test_heap_found_through_the_object_header(tmp_path, libver):
+    """Version 1 and version 2 object headers lead to the collection that holds the
+    string, found independently by its signature; the values read are h5py's."""
+    path = tmp_path / "a.h5"
+    with h5py.File(path, "w", libver=libver) as f:
+        f.attrs["width"] = 64
+        f.attrs["format"] = "trmd"
+        f.attrs["other"] = "x" * 40
+    gcol = path.read_bytes().find(b"GCOL")
+    with h5py.File(path, "r") as f:
+        assert _heap_address(f, "format") == gcol == _heap_address(f, "other")
+        assert read_attr(f, "format") == "trmd" and read_attr(f, "other") == "x" * 40
+        assert read_attr(f, "width") == 64 and read_attr(f, "missing") is None
+
+
+def test_heap_walk_on_hand_made_collections(tmp_path):
+    """A collection of one 4-byte object then free space walks to its end; the same with
+    the free-space entry's size 0 (the walk would not advance) or an object running past
+    the collection is damage."""
+    def collection(objects):
+        body = b"".join(struct.pack("<HHIQ", i, 1, 0, n) + data.ljust((n + 7) & ~7, b"\0")
+                        for i, n, data in objects)
+        size = 16 + len(body) + 32
+        free = struct.pack("<HHIQ", 0, 0, 0, 32)
+        return b"GCOL" + bytes([1, 0, 0, 0]) + struct.pack("<Q", size) + body + free + \
+            bytes(16)
+
+    good = tmp_path / "g.bin"
+    good.write_bytes(collection([(1, 4, b"trmd")]))
+    check_heap(good, 0)
+    looping = tmp_path / "l.bin"
+    raw = bytearray(collection([(1, 4, b"trmd")]))
+    raw[16 + 24 + 8:16 + 24 + 16] = bytes(8)  # the free-space entry's size: 0
+    looping.write_bytes(bytes(raw))
+    with pytest.raises(DamagedHeap):
+        check_heap(looping, 0)
+    past = tmp_path / "p.bin"
+    raw = bytearray(collection([(1, 4, b"trmd")]))
+    raw[16 + 8:16 + 16] = struct.pack("<Q", 10_000)  # the string's size: past the end
+    past.write_bytes(bytes(raw))
+    with pytest.raises(DamagedHeap):
+        check_heap(past, 0)
+
+
+def test_damaged_heap_is_an_error_not_a_hang(tmp_path):
+    """The damage that made the HDF5 library loop forever on ``attrs["format"]``: every
+    reader of trmd HDF5 files reports it with the file's path. Run in a child process with
+    a time limit, so that a regression fails instead of hanging the suite."""
+    path = _trmd_file(tmp_path / "frames.h5")
+    _zero_first_heap_object(path)
+    code = f"""
+import sys
+from pathlib import Path
+from trmd_cli.errors import TrmdError
+from trmd_cli.read import open_events
+from trmd_cli.simulate.dataset import H5SampleDataset
+from trmd_cli.train.data import detect_kind
+p = Path({str(path)!r})
+said = []
+for read in (lambda: open_events(p), lambda: H5SampleDataset(p), lambda: detect_kind(p)):
+    try:
+        read()
+    except TrmdError as e:
+        assert e.path is not None
+        said.append(str(e))
+print(len(said)); print(said[0])
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    count, first = out.stdout.splitlines()[:2]
+    assert count == "3" and "global heap" in first
