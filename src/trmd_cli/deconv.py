@@ -430,9 +430,9 @@ def deconvolve(blurry: np.ndarray, motion, config: DeconvConfig | None = None,
     reweight = ae is not None and cfg.outlier is not None
     d = np.ones((h * w, 1), np.float32)
     lam, eps = float(cfg.penalty), float(cfg.huber)
-    solved = max(cfg.rounds, 1)
+    rounds = solved = max(cfg.rounds, 1)
     re = None
-    for k in range(max(cfg.rounds, 1)):
+    for k in range(rounds):
         if k > 0 and reweight:
             re = op.apply_np(x.reshape(hp * wp, c)).reshape(h, w, c)
             res = re - b.reshape(h, w, c)
@@ -473,10 +473,10 @@ def deconvolve(blurry: np.ndarray, motion, config: DeconvConfig | None = None,
         dia[:, 1:] += lw[:, :-1]
         dia[1:] += lw[:-1]
         x = _pcg(normal, rhs, x, 1.0 / np.maximum(dia, 1e-12), cfg.iterations)
-    if solved == max(cfg.rounds, 1):
+    if solved == rounds:
         re = op.apply_np(x.reshape(hp * wp, c)).reshape(h, w, c)
     re = re[..., 0] if blurry.ndim == 2 else re
-    if reweight and solved == max(cfg.rounds, 1):
+    if reweight and solved == rounds:
         # the weights the final frame earns (the last round used the previous frame's)
         d = data_weights(re - blurry, blurry, cfg.outlier, cfg.window_px).reshape(h * w, 1)
     middle = torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1)))

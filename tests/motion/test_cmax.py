@@ -31,6 +31,18 @@ def true_epe(plan, motion: GlobalMotion) -> float:
     return float(np.mean(err))
 
 
+def camera_sample(seed: int, translation_px: float = 20, perspective: float = 0.0,
+                  curvature: float = 0.3, **sample):
+    """A simulated exposure of a camera moving over a 700×520 texture (``seed``), and its
+    plan (the true camera path, for :func:`true_epe`)."""
+    img = texture(520, 700, seed=seed)
+    motion = MotionRanges(translation_px=translation_px, rotation_deg=1, scale=0.02,
+                          perspective=perspective, curvature=curvature)
+    s = make_sample(img, rng=np.random.default_rng(seed), motion=motion, **sample)
+    plan = plan_sequence(img, rng=np.random.default_rng(seed), motion=motion)
+    return s, plan
+
+
 @pytest.mark.parametrize("perspective", [(0.0, 0.0), (2e-4, -1e-4)])
 def test_model_inverse_is_exact(perspective):
     m = GlobalMotion((7.0, -3.0), (2.0, 1.0), 0.05, 0.03, (172.5, 129.5),
@@ -46,11 +58,7 @@ def test_model_inverse_is_exact(perspective):
 
 @pytest.mark.parametrize("seed", [2])
 def test_cmax_recovers_simulated_camera_motion(seed):
-    img = texture(520, 700, seed=seed)
-    motion = MotionRanges(translation_px=20, rotation_deg=1, scale=0.02, perspective=0,
-                          curvature=0.3)
-    s = make_sample(img, rng=np.random.default_rng(seed), motion=motion)
-    plan = plan_sequence(img, rng=np.random.default_rng(seed), motion=motion)
+    s, plan = camera_sample(seed)
     m = estimate_motion(s.events, s.exposure, hot_pixel_mask(s.events, s.exposure))
     assert true_epe(plan, m) < 0.2
     assert m.confidence > 1.2
@@ -60,11 +68,7 @@ def test_cmax_from_a_start_velocity_recovers_rotation_and_zoom():
     """Started from a velocity 3 px off the true mean one (as the background's estimate is,
     from the tiles' vote), the single way it then takes frees rotation and zoom at 2× and
     still finds the camera's path, rotation and zoom included, within 0.2 px."""
-    img = texture(520, 700, seed=2)
-    motion = MotionRanges(translation_px=20, rotation_deg=1, scale=0.02, perspective=0,
-                          curvature=0.3)
-    s = make_sample(img, rng=np.random.default_rng(2), motion=motion)
-    plan = plan_sequence(img, rng=np.random.default_rng(2), motion=motion)
+    s, plan = camera_sample(2)
     hot = hot_pixel_mask(s.events, s.exposure)
     free = estimate_motion(s.events, s.exposure, hot)
     vx, vy = free.velocity
@@ -99,11 +103,7 @@ def test_contrast_gradient_matches_finite_differences(perspective):
 def test_perspective_term_follows_a_panning_camera():
     """A camera path with a perspective term (the homography a pan or tilt gives): the search
     keeps the term and lands nearer the true path than the same search without it."""
-    img = texture(520, 700, seed=7)
-    motion = MotionRanges(translation_px=20, rotation_deg=1, scale=0.02, perspective=0.03,
-                          curvature=0.3)
-    s = make_sample(img, rng=np.random.default_rng(7), motion=motion)
-    plan = plan_sequence(img, rng=np.random.default_rng(7), motion=motion)
+    s, plan = camera_sample(7, perspective=0.03)
     hot = hot_pixel_mask(s.events, s.exposure)
     m = estimate_motion(s.events, s.exposure, hot)
     flat = estimate_motion(s.events, s.exposure, hot, MotionSearch(max_perspective=0.0))
@@ -125,12 +125,7 @@ def test_jerk_follows_a_bending_path():
     0.19 against 0.28 px)."""
     from trmd_cli.simulate import SensorConfig
 
-    img = texture(520, 700, seed=3)
-    motion = MotionRanges(translation_px=24, rotation_deg=1, scale=0.02, perspective=0,
-                          curvature=1.0)
-    s = make_sample(img, rng=np.random.default_rng(3), motion=motion,
-                    sensor=SensorConfig.clean(0.2))
-    plan = plan_sequence(img, rng=np.random.default_rng(3), motion=motion)
+    s, plan = camera_sample(3, translation_px=24, curvature=1.0, sensor=SensorConfig.clean(0.2))
     hot = hot_pixel_mask(s.events, s.exposure)
     m = estimate_motion(s.events, s.exposure, hot)
     flat = estimate_motion(s.events, s.exposure, hot, MotionSearch(jerk=False))

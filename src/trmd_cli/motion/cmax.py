@@ -441,7 +441,7 @@ def estimate_motion(events: EventStream, exposure: Exposure,
     # from a given velocity (the background's, after the first estimate) only the first
     # way: on the frames with movers its estimate was the same to 0.01 dB and 0.04–0.1 s
     # faster
-    ways = sorted({free}) if start is not None else sorted({4, free})
+    ways = [free] if start is not None else sorted({4, free})
     tries = [refine(fine, refine(mid, q, f, 0.5), free, 0.25) for f in ways]
     q = max(tries, key=fine.gain)
     if search.rotation_zoom and search.max_perspective > 0:

@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import struct
 
-import numpy as np
-
 #: HDF5 message types: attribute, header continuation
 _ATTRIBUTE, _CONTINUATION = 0x000C, 0x0010
 
@@ -111,7 +109,7 @@ def _attribute_messages(fh, addr: int):
             body = data[p + 8:p + 8 + msize]
             seen += 1
             if mtype == _ATTRIBUTE:
-                yield body, 1
+                yield body
             elif mtype == _CONTINUATION and len(body) >= 16:
                 blocks.append(struct.unpack_from("<QQ", body, 0))
             p += 8 + msize
@@ -138,15 +136,14 @@ def _v2_messages(fh, addr: int):
             msize = struct.unpack_from("<H", data, q + 1)[0]
             body = data[q + 4 + order:q + 4 + order + msize]
             if mtype == _ATTRIBUTE:
-                yield body, 2
+                yield body
             elif mtype == _CONTINUATION and len(body) >= 16:
                 blocks.append(struct.unpack_from("<QQ", body, 0))
             q += 4 + order + msize
 
 
-def _string_heap(message, name: bytes) -> int | None:
+def _string_heap(body: bytes, name: bytes) -> int | None:
     """The heap address in an attribute message's data when it is attribute ``name``."""
-    body, _ = message
     if len(body) < 8:
         return None
     version = body[0]
@@ -165,4 +162,4 @@ def _string_heap(message, name: bytes) -> int | None:
     if len(body) < p + 16:
         return None
     # a scalar variable-length value: its length (4), then the heap ID: address (8), index (4)
-    return int(np.frombuffer(body, "<u8", 1, p + 4)[0])
+    return struct.unpack_from("<Q", body, p + 4)[0]
