@@ -109,3 +109,54 @@ print(len(said)); print(said[0])
     assert out.returncode == 0, out.stderr
     count, first = out.stdout.splitlines()[:2]
     assert count == "3" and "global heap" in first
+
+
+def _dense_file(path, count: int, long: bool):
+    """A file whose root holds ``count`` attributes besides two strings, in dense storage
+    (version 2 object header, more than eight attributes): with ``long`` ones the fractal
+    heap outgrows one direct block and its root becomes an indirect block."""
+    with h5py.File(path, "w", libver="latest") as f:
+        for i in range(count):
+            f.attrs[f"a{i:02d}"] = f"value {i} " * 25 if long else i
+        f.attrs["format"] = "trmd"
+        f.attrs["other"] = "x" * 40
+    return path
+
+
+@pytest.mark.parametrize("count, long, root", [(12, False, b"FHDB"), (60, True, b"FHIB")])
+def test_heap_found_through_dense_attribute_storage(tmp_path, count, long, root):
+    """Attributes kept in a fractal heap (direct or indirect root block) lead to the global
+    heap collection that holds each string's characters, checked on the file's bytes."""
+    path = _dense_file(tmp_path / "d.h5", count, long)
+    raw = path.read_bytes()
+    heap = raw.find(b"FRHP")
+    assert heap > 0 and raw[struct.unpack_from("<Q", raw, heap + 132)[0]:][:4] == root
+    names = ["format", "other"] + ([f"a{i:02d}" for i in range(count)] if long else [])
+    with h5py.File(path, "r") as f:
+        for name in names:
+            value = read_attr(f, name)
+            at = _heap_address(f, name)
+            assert at is not None and raw[at:at + 4] == b"GCOL", name
+            size = struct.unpack_from("<Q", raw, at + 8)[0]
+            assert value.encode() in raw[at:at + size], name
+
+
+def test_damaged_heap_in_dense_storage_is_an_error_not_a_hang(tmp_path):
+    """The looping damage behind a densely stored string attribute is reported too (in a
+    child process with a time limit: a regression would hang in the HDF5 library)."""
+    path = _dense_file(tmp_path / "d.h5", 12, False)
+    _zero_first_heap_object(path)
+    code = f"""
+import h5py
+from trmd_cli.read.hdf5_strings import DamagedHeap, read_attr
+with h5py.File({str(path)!r}, "r") as f:
+    assert read_attr(f, "a03") == 3
+    try:
+        read_attr(f, "format")
+    except DamagedHeap as e:
+        print(e)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "global heap" in out.stdout

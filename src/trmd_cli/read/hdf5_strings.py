@@ -8,16 +8,20 @@ the interpreter, so no timeout can stop it. Before such an attribute is read, it
 collection is found through the object header it is stored in and walked here the same way;
 a walk that would not advance, or would run past the collection, is reported as damage.
 
-Only what is needed is parsed: version 1 object headers (h5py's default) and version 2 ones
-with attributes stored in the header. Anything else is read as before.
+Only what is needed is parsed: version 1 object headers (h5py's default) and version 2 ones,
+with attributes stored in the header or, beyond eight of them, densely in a fractal heap whose
+root block is a direct block or an indirect block of direct blocks (the attribute message is
+found by its name there, not through the name index). Anything else is read as before.
 """
 
 from __future__ import annotations
 
 import struct
 
-#: HDF5 message types: attribute, header continuation
-_ATTRIBUTE, _CONTINUATION = 0x000C, 0x0010
+#: HDF5 message types: attribute, header continuation, attribute info (dense storage)
+_ATTRIBUTE, _CONTINUATION, _ATTRIBUTE_INFO = 0x000C, 0x0010, 0x0015
+#: an address that points nowhere
+_UNDEFINED = 0xFFFFFFFFFFFFFFFF
 
 
 class DamagedHeap(OSError):
@@ -78,7 +82,7 @@ def _heap_address(obj, name: str) -> int | None:
     try:
         info = h5py.h5o.get_info(obj.id)
         with open(obj.file.filename, "rb") as fh:
-            for body in _attribute_messages(fh, int(info.addr)):
+            for body in _attribute_messages(fh, int(info.addr), name.encode()):
                 found = _string_heap(body, name.encode())
                 if found is not None:
                     return found
@@ -87,12 +91,13 @@ def _heap_address(obj, name: str) -> int | None:
     return None
 
 
-def _attribute_messages(fh, addr: int):
-    """The attribute messages' bodies in the object header at ``addr`` (v1 or v2)."""
+def _attribute_messages(fh, addr: int, name: bytes):
+    """The attribute messages' bodies in the object header at ``addr`` (v1 or v2), and in
+    its dense storage the candidates for attribute ``name``."""
     fh.seek(addr)
     first = fh.read(16)
     if first[:4] == b"OHDR":
-        yield from _v2_messages(fh, addr)
+        yield from _v2_messages(fh, addr, name)
         return
     if not first or first[0] != 1:
         return
@@ -115,7 +120,7 @@ def _attribute_messages(fh, addr: int):
             p += 8 + msize
 
 
-def _v2_messages(fh, addr: int):
+def _v2_messages(fh, addr: int, name: bytes):
     fh.seek(addr)
     head = fh.read(64)
     flags = head[5]
@@ -137,9 +142,68 @@ def _v2_messages(fh, addr: int):
             body = data[q + 4 + order:q + 4 + order + msize]
             if mtype == _ATTRIBUTE:
                 yield body
+            elif mtype == _ATTRIBUTE_INFO:
+                yield from _dense_candidates(fh, body, name)
             elif mtype == _CONTINUATION and len(body) >= 16:
                 blocks.append(struct.unpack_from("<QQ", body, 0))
             q += 4 + order + msize
+
+
+def _dense_candidates(fh, info: bytes, name: bytes):
+    """From an attribute info message's body: what follows each place in the fractal heap's
+    direct blocks where an attribute message (version 2 or 3) named ``name`` could start."""
+    if len(info) < 10 or info[0] != 0:
+        return
+    p = 2 + (2 if info[1] & 0x01 else 0)
+    heap = struct.unpack_from("<Q", info, p)[0]
+    if heap == _UNDEFINED:
+        return  # attributes in the header (a version 2 header has this message either way)
+    for block in _direct_blocks(fh, heap):
+        key = name + b"\x00"
+        at = block.find(key)
+        while at >= 0:
+            for start, version in ((at - 9, 3), (at - 8, 2)):
+                if start >= 0 and block[start] == version and \
+                        struct.unpack_from("<H", block, start + 2)[0] == len(key):
+                    yield block[start:]
+            at = block.find(key, at + 1)
+
+
+def _direct_blocks(fh, heap: int):
+    """The direct blocks' bytes of the fractal heap whose header is at ``heap``: its root
+    block, or the direct blocks an indirect root lists (deeper heaps, filtered ones and huge
+    objects are not followed)."""
+    fh.seek(heap)
+    head = fh.read(142)
+    if len(head) < 142 or head[:4] != b"FRHP" or struct.unpack_from("<H", head, 7)[0]:
+        return  # not a heap, or one with I/O filters
+    width = struct.unpack_from("<H", head, 110)[0]
+    start_size, max_direct = struct.unpack_from("<QQ", head, 112)
+    max_bits = struct.unpack_from("<H", head, 128)[0]
+    root, rows = struct.unpack_from("<QH", head, 132)
+    if rows == 0:
+        fh.seek(root)
+        yield fh.read(start_size)
+        return
+    if not 0 < start_size <= max_direct or width == 0 or width > 1024:
+        return
+    # the doubling table: rows 0 and 1 hold blocks of the starting size, each later row
+    # twice the last; rows of blocks larger than ``max_direct`` point to indirect blocks
+    sizes = [start_size if r < 2 else start_size << (r - 1) for r in range(rows)]
+    fh.seek(root)
+    ind = fh.read(4 + 1 + 8 + (max_bits + 7) // 8 + 8 * width * rows)
+    if ind[:4] != b"FHIB":
+        return
+    q = 13 + (max_bits + 7) // 8
+    for size in sizes:
+        if size > max_direct:
+            return
+        for _ in range(width):
+            addr = struct.unpack_from("<Q", ind, q)[0]
+            q += 8
+            if addr != _UNDEFINED:
+                fh.seek(addr)
+                yield fh.read(size)
 
 
 def _string_heap(body: bytes, name: bytes) -> int | None:
