@@ -178,6 +178,32 @@ def test_h5_round_trip_lazy_windows(tmp_path, rng, monkeypatch):
         assert sum(len(c) for c in rec.iter_chunks(999)) == len(s)
 
 
+def test_h5_frames_scale(tmp_path, rng):
+    """Float frames are [0, 1] intensity, noise above 1 included (a bright frame with
+    σ = 0.01 noise reaches ≈ 1.05: read as stored, not divided by 255); 8-bit counts, stored
+    as integers or as floats, become [0, 1]."""
+    s = random_stream(rng, n=200)
+    wins = [Exposure(0, 30_000)] * 3
+    noisy = np.clip(0.98 + rng.normal(0, 0.01, (30, 40)), 0.9, 1.06).astype(np.float32)
+    counts = rng.integers(0, 256, (30, 40))
+    write_h5(tmp_path / "f.h5", s, blurry=np.stack([noisy, counts.astype(np.float32),
+                                                    counts.astype(np.float32)]),
+             exposures=wins)
+    with h5py.File(tmp_path / "f.h5", "r+") as f:
+        del f["frames/blurry"]
+        f["frames/blurry"] = np.stack([np.zeros((30, 40), np.uint8), counts.astype(np.uint8),
+                                       np.zeros((30, 40), np.uint8)])
+    with open_events(tmp_path / "f.h5") as rec:
+        assert [f.image.max() for f in rec.frames()][:2] == [0.0, counts.max() / 255.0]
+    write_h5(tmp_path / "g.h5", s, blurry=np.stack([noisy, counts.astype(np.float32), noisy]),
+             exposures=wins)
+    with open_events(tmp_path / "g.h5") as rec:
+        got = [f.image for f in rec.frames()]
+    assert noisy.max() > 1.02
+    np.testing.assert_array_equal(got[0], noisy)
+    np.testing.assert_allclose(got[1], counts / 255.0, rtol=1e-6)
+
+
 def test_h5_event_utils_and_dsec_layouts(tmp_path):
     with h5py.File(tmp_path / "eu.h5", "w") as f:
         f.attrs["sensor_resolution"] = (180, 240)

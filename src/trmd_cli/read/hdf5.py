@@ -32,6 +32,12 @@ _LAYOUTS = {
     "trmd/dsec": ("x", "y", "t", "p"),
     "event_utils": ("xs", "ys", "ts", "ps"),
 }
+#: the largest value of a float ``frames/blurry`` read as [0, 1] intensity: sensor noise on a
+#: bright pixel overshoots 1 (a σ = 0.01 frame whose highlights sit at 1.0 reaches ≈ 1.05), and
+#: dividing such a frame by 255 would darken it 255× without a word. A float frame beyond this
+#: holds 8-bit (≤ 255) or 16-bit counts and is scaled as integer frames are.
+FLOAT_FRAME_MAX = 2.0
+
 #: the coarse index keeps every STRIDE-th time in memory (8 bytes / 4096 events)
 STRIDE = 4096
 
@@ -300,7 +306,7 @@ class HDF5Recording(Recording):
                 raise InputError(f"frame {k} holds {bad} NaN or infinite pixel value(s)",
                                  path=self.path, hint="repair the stored frames: pixels are "
                                  "intensities in [0, 1]")
-            if img.dtype.kind in "ui" or img.max(initial=0) > 1.0 + 1e-6:
+            if img.dtype.kind in "ui" or img.max(initial=0) > FLOAT_FRAME_MAX:
                 img = img / (255.0 if img.max() <= 255 else 65535.0)
             if img.shape[:2] != (self.height, self.width):
                 raise InputError(f"frame {k} is {img.shape[1]}x{img.shape[0]} but the events' "
