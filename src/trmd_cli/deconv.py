@@ -130,7 +130,7 @@ class DeconvConfig:
 #: set α scaled by (0.3 / 0.7)² is within 0.03 dB of the best fixed α found there)
 ANCHOR_CONTRAST = 0.3
 #: the range of the factors :meth:`DeconvConfig.for_noise` scales λ and α by
-NOISE_SCALE = (0.25, 8.0)
+NOISE_SCALE = (0.25, 32.0)
 
 
 class BlurOperator:
