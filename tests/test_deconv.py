@@ -36,6 +36,12 @@ W, H = 80, 60
 MOTION = GlobalMotion((10.0, 4.0), (8.0, -6.0), 0.02, 0.01, ((W - 1) / 2, (H - 1) / 2))
 
 
+def _seen(op: BlurOperator, big: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A canvas frame (Hp, Wp) through ``op``: (B, the sensor's part of the frame)."""
+    blurry = op.apply(torch.from_numpy(big)[None])[0].numpy()
+    return blurry, big[op.pad:op.pad + H, op.pad:op.pad + W]
+
+
 def test_adjoint_is_exact():
     op = BlurOperator(MOTION, W, H, dtype=torch.float64)
     g = torch.Generator().manual_seed(0)
@@ -70,8 +76,7 @@ def test_known_blur_is_undone_with_exact_motion():
     rng = np.random.default_rng(0)
     big = np.kron(rng.uniform(0.1, 0.9, (hp // 8 + 1, wp // 8 + 1)),
                   np.ones((8, 8)))[:hp, :wp].astype(np.float32)
-    blurry = op.apply(torch.from_numpy(big)[None])[0].numpy()
-    sharp = big[op.pad:op.pad + H, op.pad:op.pad + W]
+    blurry, sharp = _seen(op, big)
     d = deconvolve(blurry, MOTION, DeconvConfig(penalty=3e-5, huber=1e-3, rounds=8,
                                                 iterations=80))
     out = d.frames([0.5])[0]
@@ -127,8 +132,7 @@ def test_anchor_fills_what_the_blur_erased():
     ys, xs = np.mgrid[0:hp, 0:wp].astype(np.float32)
     big = (0.5 + 0.2 * np.sin(2 * np.pi * xs / 16) + 0.1 * np.cos(2 * np.pi * ys / 23))
     big = big.astype(np.float32)
-    blurry = op.apply(torch.from_numpy(big)[None])[0].numpy()
-    sharp = big[op.pad:op.pad + H, op.pad:op.pad + W]
+    blurry, sharp = _seen(op, big)
     noisy = sharp + 0.02 * np.random.default_rng(0).standard_normal(sharp.shape)
     noisy = noisy.astype(np.float32)
     inner = (slice(4, -4), slice(20, -20))
@@ -148,8 +152,7 @@ def test_guard_trusts_an_exact_motion_and_drops_a_wrong_one():
     hp, wp = op.canvas
     rng = np.random.default_rng(5)
     big = texture(hp, wp, seed=3).astype(np.float32)
-    sharp = big[op.pad:op.pad + H, op.pad:op.pad + W]
-    blurry = op.apply(torch.from_numpy(big)[None])[0].numpy()
+    blurry, sharp = _seen(op, big)
     blurry = (blurry + 0.005 * rng.standard_normal((H, W))).astype(np.float32)
     edi = (sharp + 0.03 * rng.standard_normal(sharp.shape)).astype(np.float32)
     # α near B's noise variance over the anchor's, (0.005 / 0.03)²
@@ -172,8 +175,7 @@ def test_stop_ends_the_solve_with_the_frame_so_far():
     op = BlurOperator(MOTION, W, H)
     hp, wp = op.canvas
     big = texture(hp, wp, seed=3).astype(np.float32)
-    blurry = op.apply(torch.from_numpy(big)[None])[0].numpy()
-    sharp = big[op.pad:op.pad + H, op.pad:op.pad + W]
+    blurry, sharp = _seen(op, big)
     edi = (sharp + 0.03 * np.random.default_rng(5).standard_normal(sharp.shape)).astype(
         np.float32)
     cfg = DeconvConfig(anchor=0.01)
@@ -474,8 +476,7 @@ def test_noisy_frame_deconvolved_better_than_its_anchor(sigma):
     hp, wp = op.canvas
     rng = np.random.default_rng(1)
     big = texture(hp, wp, 1).astype(np.float32)
-    sharp = big[op.pad:op.pad + H, op.pad:op.pad + W]
-    blurry = op.apply(torch.from_numpy(big)[None])[0].numpy()
+    blurry, sharp = _seen(op, big)
     blurry = (blurry + sigma * rng.standard_normal(blurry.shape)).astype(np.float32)
     anchor = (sharp + 0.03 * rng.standard_normal(sharp.shape)).astype(np.float32)
     cfg = DeconvConfig().for_noise(noise_level(blurry))

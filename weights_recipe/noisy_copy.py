@@ -25,13 +25,13 @@ def noisy_copy(src: Path, out: Path, read: float, shot: float, seed: int = 0) ->
     """Copy ``src`` to ``out`` with noise of σ² = read² + shot·B added to its blurry frames."""
     if out.exists():
         raise SystemExit(f"{out} exists: choose another name or remove it")
+    with h5py.File(src, "r") as f:
+        if "frames/blurry" not in f:
+            raise SystemExit(f"{src}: no frames/blurry to add noise to")
     tmp = out.with_name(out.name + ".part")
     shutil.copyfile(src, tmp)
     rng = np.random.default_rng(seed)
     with h5py.File(tmp, "r+") as f:
-        if "frames/blurry" not in f:
-            tmp.unlink()
-            raise SystemExit(f"{src}: no frames/blurry to add noise to")
         frames = f["frames/blurry"]
         for k in range(frames.shape[0]):
             b = frames[k].astype(np.float32)

@@ -79,11 +79,12 @@ def _heap_address(obj, name: str) -> int | None:
     of ``obj``, read from its object header; None where the header is not understood."""
     import h5py
 
+    key = name.encode()
     try:
         info = h5py.h5o.get_info(obj.id)
         with open(obj.file.filename, "rb") as fh:
-            for body in _attribute_messages(fh, int(info.addr), name.encode()):
-                found = _string_heap(body, name.encode())
+            for body in _attribute_messages(fh, int(info.addr), key):
+                found = _string_heap(body, key)
                 if found is not None:
                     return found
     except (OSError, struct.error, ValueError):
@@ -158,8 +159,8 @@ def _dense_candidates(fh, info: bytes, name: bytes):
     heap = struct.unpack_from("<Q", info, p)[0]
     if heap == _UNDEFINED:
         return  # attributes in the header (a version 2 header has this message either way)
+    key = name + b"\x00"
     for block in _direct_blocks(fh, heap):
-        key = name + b"\x00"
         at = block.find(key)
         while at >= 0:
             for start, version in ((at - 9, 3), (at - 8, 2)):
