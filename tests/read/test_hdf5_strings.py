@@ -11,7 +11,13 @@ import numpy as np
 import pytest
 
 from trmd_cli.events import Exposure, make_stream
-from trmd_cli.read.hdf5_strings import DamagedHeap, _heap_address, check_heap, read_attr
+from trmd_cli.read.hdf5_strings import (
+    DamagedHeap,
+    _direct_blocks,
+    _heap_address,
+    check_heap,
+    read_attr,
+)
 from trmd_cli.write import write_h5
 
 
@@ -160,3 +166,18 @@ with h5py.File({str(path)!r}, "r") as f:
                          timeout=120)
     assert out.returncode == 0, out.stderr
     assert "global heap" in out.stdout
+
+
+def test_sizes_past_the_file_are_read_as_far_as_it_goes(tmp_path):
+    """A damaged size in the fractal heap's header (the root block 2⁵⁰ bytes long) is read
+    up to the file's end, not allocated (h5py, which checks the header's checksum first, is
+    left out: the walk here must not depend on it)."""
+    path = _dense_file(tmp_path / "d.h5", 12, False)
+    raw = bytearray(path.read_bytes())
+    heap = raw.find(b"FRHP")
+    root = struct.unpack_from("<Q", raw, heap + 132)[0]
+    raw[heap + 112:heap + 120] = struct.pack("<Q", 1 << 50)  # the starting block size
+    path.write_bytes(bytes(raw))
+    with open(path, "rb") as fh:
+        blocks = list(_direct_blocks(fh, heap))
+    assert len(blocks) == 1 and blocks[0] == bytes(raw[root:])

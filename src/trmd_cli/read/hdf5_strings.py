@@ -16,6 +16,7 @@ found by its name there, not through the name index). Anything else is read as b
 
 from __future__ import annotations
 
+import os
 import struct
 
 #: HDF5 message types: attribute, header continuation, attribute info (dense storage)
@@ -46,19 +47,26 @@ def read_attr(obj, name: str):
     return obj.attrs.get(name)
 
 
+def _read(fh, size: int) -> bytes:
+    """``size`` bytes from ``fh``'s position, or up to the file's end: a size read from a
+    damaged file (up to 2⁶⁴) is never allocated whole."""
+    left = os.fstat(fh.fileno()).st_size - fh.tell()
+    return fh.read(max(min(size, left), 0))
+
+
 def check_heap(path, address: int) -> None:
     """Walk the global heap collection at byte ``address`` of the file ``path`` as the HDF5
     library does (H5HG's deserialisation); raise :class:`DamagedHeap` where it would not
     end. A block that is not a collection is left to the library (which reports it)."""
     with open(path, "rb") as fh:
         fh.seek(address)
-        head = fh.read(16)
+        head = _read(fh, 16)
         if len(head) < 16 or head[:4] != b"GCOL":
             return
         size = struct.unpack_from("<Q", head, 8)[0]
         if size < 16 or size > (1 << 31):
             raise DamagedHeap(f"global heap at byte {address} claims {size} bytes")
-        chunk = head + fh.read(size - 16)
+        chunk = head + _read(fh, size - 16)
     if len(chunk) < size:
         # the library reads the collection whole, and fails on a short one
         return
@@ -96,7 +104,7 @@ def _attribute_messages(fh, addr: int, name: bytes):
     """The attribute messages' bodies in the object header at ``addr`` (v1 or v2), and in
     its dense storage the candidates for attribute ``name``."""
     fh.seek(addr)
-    first = fh.read(16)
+    first = _read(fh, 16)
     if first[:4] == b"OHDR":
         yield from _v2_messages(fh, addr, name)
         return
@@ -108,7 +116,7 @@ def _attribute_messages(fh, addr: int, name: bytes):
     while blocks and seen < nmsgs:
         start, length = blocks.pop(0)
         fh.seek(start)
-        data = fh.read(length)
+        data = _read(fh, length)
         p = 0
         while p + 8 <= len(data) and seen < nmsgs:
             mtype, msize = struct.unpack_from("<HH", data, p)
@@ -123,7 +131,7 @@ def _attribute_messages(fh, addr: int, name: bytes):
 
 def _v2_messages(fh, addr: int, name: bytes):
     fh.seek(addr)
-    head = fh.read(64)
+    head = _read(fh, 64)
     flags = head[5]
     p = 6 + (16 if flags & 0x20 else 0) + (4 if flags & 0x10 else 0)
     width = 1 << (flags & 0x03)
@@ -134,7 +142,7 @@ def _v2_messages(fh, addr: int, name: bytes):
     while blocks:
         start, length = blocks.pop(0)
         fh.seek(start)
-        data = fh.read(length)
+        data = _read(fh, length)
         q = 4 if data[:4] == b"OCHK" else 0
         end = len(data) - (4 if q else 0)
         while q + 4 + order <= end:
@@ -175,7 +183,7 @@ def _direct_blocks(fh, heap: int):
     block, or the direct blocks an indirect root lists (deeper heaps, filtered ones and huge
     objects are not followed)."""
     fh.seek(heap)
-    head = fh.read(142)
+    head = _read(fh, 142)
     if len(head) < 142 or head[:4] != b"FRHP" or struct.unpack_from("<H", head, 7)[0]:
         return  # not a heap, or one with I/O filters
     width = struct.unpack_from("<H", head, 110)[0]
@@ -184,7 +192,7 @@ def _direct_blocks(fh, heap: int):
     root, rows = struct.unpack_from("<QH", head, 132)
     if rows == 0:
         fh.seek(root)
-        yield fh.read(start_size)
+        yield _read(fh, start_size)
         return
     if not 0 < start_size <= max_direct or width == 0 or width > 1024:
         return
@@ -192,7 +200,7 @@ def _direct_blocks(fh, heap: int):
     # twice the last; rows of blocks larger than ``max_direct`` point to indirect blocks
     sizes = [start_size if r < 2 else start_size << (r - 1) for r in range(rows)]
     fh.seek(root)
-    ind = fh.read(4 + 1 + 8 + (max_bits + 7) // 8 + 8 * width * rows)
+    ind = _read(fh, 4 + 1 + 8 + (max_bits + 7) // 8 + 8 * width * rows)
     if ind[:4] != b"FHIB":
         return
     q = 13 + (max_bits + 7) // 8
@@ -204,7 +212,7 @@ def _direct_blocks(fh, heap: int):
             q += 8
             if addr != _UNDEFINED:
                 fh.seek(addr)
-                yield fh.read(size)
+                yield _read(fh, size)
 
 
 def _string_heap(body: bytes, name: bytes) -> int | None:
