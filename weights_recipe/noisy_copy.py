@@ -25,9 +25,15 @@ def noisy_copy(src: Path, out: Path, read: float, shot: float, seed: int = 0) ->
     """Copy ``src`` to ``out`` with noise of σ² = read² + shot·B added to its blurry frames."""
     if out.exists():
         raise SystemExit(f"{out} exists: choose another name or remove it")
-    with h5py.File(src, "r") as f:
-        if "frames/blurry" not in f:
-            raise SystemExit(f"{src}: no frames/blurry to add noise to")
+    if not src.is_file():
+        raise SystemExit(f"{src}: no such file")
+    try:
+        with h5py.File(src, "r") as f:
+            found = "frames/blurry" in f
+    except OSError as e:
+        raise SystemExit(f"{src}: not an HDF5 file h5py can read ({e})") from None
+    if not found:
+        raise SystemExit(f"{src}: no frames/blurry to add noise to")
     tmp = out.with_name(out.name + ".part")
     shutil.copyfile(src, tmp)
     rng = np.random.default_rng(seed)
