@@ -245,8 +245,10 @@ def _seq(frames, sharp):
 
 def test_independent_mover_falls_back_to_edi():
     """A foreground patch moving on its own: the output is never worse than EDI, middle or
-    sequence (measured EDI 29.97 / 28.95, motion 30.08 / 29.07 dB); along the true camera
-    path the background is trusted while the patch is not (measured 32.43 / 32.23 dB)."""
+    sequence (measured EDI 29.97 / 28.95, motion 30.76 / 29.83 dB: the patch's tiles dispute
+    the global estimate, and the background's motion is deconvolved where it predicts the
+    events); along the true camera path the background is trusted while the patch is not
+    (measured 32.43 / 32.23 dB)."""
     s = _sample(4, foreground=True)
     edi = EdiMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
     mot = MotionMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
@@ -374,11 +376,11 @@ def test_estimated_threshold_is_refitted_for_edis_frames():
 
 
 def test_background_motion_when_the_estimate_follows_a_mover(monkeypatch):
-    """A foreground patch moving on its own, where the global estimate explains less than
-    half of the frame: the motion of the tiles that move together is deconvolved where it
+    """A foreground patch moving on its own, which the global estimate follows: its tiles
+    dispute it, and the motion of the tiles that move together is deconvolved where it
     predicts the events (measured: EDI 29.20 / 28.59, motion 31.67 / 31.73 dB, middle /
-    sequence; with EDI's frames alone before). The global estimate's deconvolution, which
-    explains almost nothing, stops after its first round (c given: no refit needs it)."""
+    sequence; with EDI's frames alone before). That is the only deconvolution: the global
+    estimate's, which explains 10 % of B, is not solved at all."""
     motion = MotionRanges(translation_px=14, rotation_deg=0.5, scale=0.01, perspective=0,
                           curvature=0.2, foreground_prob=1.0, max_layers=1,
                           layer_translation_px=30, layer_size=(0.3, 0.45))
@@ -396,8 +398,8 @@ def test_background_motion_when_the_estimate_follows_a_mover(monkeypatch):
     monkeypatch.undo()
     assert any("tiles that move together" in note for note in mot.notes), mot.notes
     assert psnr(mot.frames[3], s.sharp[3]) > psnr(edi.frames[3], s.sharp[3]) + 1.5
-    assert solved[0].rounds == 1, "the global motion explains ~0 %: stopped after one round"
-    assert solved[1].rounds == 3
+    assert "tiles move otherwise than the global motion" in mot.notes[0], mot.notes
+    assert [d.rounds for d in solved] == [3]
     assert _seq(mot.frames, s.sharp) > _seq(edi.frames, s.sharp) + 2
     # a colour frame takes the same way, its unscaled channel as well restored
     rgb = np.stack([s.blurry, 0.9 * s.blurry, 0.8 * s.blurry], -1).astype(np.float32)

@@ -27,10 +27,13 @@ Guard (:func:`guard_weights`, :func:`agreement`, in :func:`motion_deblur`). Per 
 deconvolution's share is where B is explained (the final data weights, widened), where the
 events of the tile are sharpened by the motion (:func:`tile_gains`), scaled by the motion's
 global confidence; at each instant it is raised where the warped frame agrees with EDI's frame
-of that instant. Elsewhere the output is EDI's. Where the motion explains under half of the
-frame (it may have followed something that moves on its own), the background's motion
-(:func:`~trmd_cli.motion.tiles.background_motion`) is deconvolved instead and kept where it
-predicts the events' change of log intensity over the exposure (:func:`change_agreement`).
+of that instant. Elsewhere the output is EDI's. Where tiles of the frame move otherwise than
+the global motion (:func:`~trmd_cli.motion.tiles.disputed_tiles`: something moves on its own
+there), or the motion explains under half of the frame (it may have followed such a thing),
+the background's motion (:func:`~trmd_cli.motion.tiles.background_motion`) is deconvolved
+instead and kept where it predicts the events' change of log intensity over the exposure
+(:func:`change_agreement`); when no background motion holds, a disputed global motion still
+goes through the guard above.
 """
 
 from __future__ import annotations
@@ -805,6 +808,7 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
     """
     from .motion import MIN_EVENTS, estimate_motion
     from .motion.cmax import window_points
+    from .motion.tiles import disputed_tiles, outvoted_tiles, tile_velocities
 
     given = motion is not None
     if motion is None:
@@ -820,14 +824,31 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
     cfg = cfg.for_noise(noise_level(blurry))
 
     fitted = None
+    votes = None
+    tried = False  # the background's deconvolution was tried and fell back to EDI
 
     def second_chance(reason: str, solved: Deconvolved | None = None) -> MotionDeblur:
         # (``edi_frames`` and ``fitted`` as they stand when called)
+        fallback = MotionDeblur(edi_frames, zero, motion, (reason,), fallback_contrast=fitted)
+        if tried:
+            return fallback
         return _background_deblur(blurry, events, exposure, fractions, edi_frames, edi_middle,
-                                  hot_mask, cfg, contrast,
-                                  MotionDeblur(edi_frames, zero, motion, (reason,),
-                                               fallback_contrast=fitted),
-                                  motion if given else None, solved)
+                                  hot_mask, cfg, contrast, fallback,
+                                  motion if given else None, solved, votes)
+
+    points = window_points(events, exposure, hot_mask)
+    if not given and contrast is not None:
+        # tiles that something else moves (:func:`~trmd_cli.motion.tiles.disputed_tiles`)
+        # send the frame to the background's motion first, with the events' change test
+        votes = tile_velocities(events, exposure, hot_mask)
+        disputed = disputed_tiles(votes, motion, points, w, h)
+        if disputed and outvoted_tiles(votes, w, h) is not None:
+            res = second_chance(f"{len(disputed)} of {len(votes)} tiles move otherwise than "
+                                f"the global motion: used EDI")
+            if res.weights is not None:
+                return res
+            # no background motion holds: the global motion, guarded as on any frame
+            tried = True
 
     if motion.confidence < 1.05 or motion.max_displacement_px(w, h) < 0.25:
         said = ("the events are not sharpened by the given motion" if given else
@@ -838,7 +859,7 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
         return second_chance(reason) if given else MotionDeblur(edi_frames, zero, motion,
                                                                 (reason,))
     # the tiles' gains need only the motion: measured beside the deconvolution
-    gains_later = beside(tile_gains, motion, *window_points(events, exposure, hot_mask), w, h)
+    gains_later = beside(tile_gains, motion, *points, w, h)
 
     def hopeless(k: int, data_weight: np.ndarray) -> bool:
         floor = EARLY_SHARE.get(k)
@@ -885,14 +906,16 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
 def _background_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: np.ndarray,
                        edi_middle: np.ndarray, hot_mask: np.ndarray | None,
                        cfg: DeconvConfig, contrast: float | None, fallback: MotionDeblur,
-                       given=None, solved: Deconvolved | None = None) -> MotionDeblur:
+                       given=None, solved: Deconvolved | None = None,
+                       votes: dict | None = None) -> MotionDeblur:
     """When one global motion does not hold: the deconvolution along the background's motion
     (``given``, deconvolved already when ``solved``; else estimated apart from the tiles that
     move otherwise, :func:`~trmd_cli.motion.tiles.background_motion`), kept where that motion
     predicts the events' change of log intensity (:func:`change_agreement`) and re-blurring
     explains B (:func:`explained`); EDI elsewhere, at every instant. ``fallback`` (EDI's
     frames) when there is no such motion, no c to read the events with, or it holds on less
-    than :data:`BACKGROUND_SHARE` of the frame.
+    than :data:`BACKGROUND_SHARE` of the frame. ``votes``: the tiles' velocities
+    (:func:`~trmd_cli.motion.tiles.tile_velocities`) when measured already.
 
     On eight noise-free simulated exposures with a foreground layer moving on its own
     (``bench/bench_mover_guard.py``), the global estimate followed the layer in five; on those
@@ -905,7 +928,8 @@ def _background_deblur(blurry: np.ndarray, events, exposure, fractions, edi_fram
     if contrast is None:
         return fallback
     h, w = blurry.shape[:2]
-    motion = given if given is not None else background_motion(events, exposure, hot_mask)
+    motion = given if given is not None else \
+        background_motion(events, exposure, hot_mask, votes=votes)
     if motion is None or motion.events < MIN_EVENTS or motion.max_displacement_px(w, h) < 0.25:
         return fallback
     d = solved if solved is not None else \
