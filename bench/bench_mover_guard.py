@@ -9,10 +9,10 @@ pixel's change of log intensity, ``c · S(1)``; a deconvolution along a motion p
 the motion does not hold and EDI is kept. The middle frame's PSNR on the interior, in dB, from:
 
 * EDI given the true c;
-* ``--method motion`` (global motion from the events, the guard; where it explains under half
-  the frame, the background's motion from the tiles that move together, kept where it
-  predicts the events: ``deconv.change_agreement``, the local RMS of the difference within
-  one threshold);
+* ``--method motion`` (global motion from the events, the guard; where tiles dispute that
+  motion (``motion.tiles.disputed_tiles``) or it explains under half the frame, the
+  background's motion from the tiles that move together, kept where it predicts the events:
+  ``deconv.change_agreement``, the local RMS of the difference within one threshold);
 * ``motion-true-path`` (the camera's true path through the same method);
 * the background's motion (``motion.tiles.background_motion``) with the signed test instead:
   the difference smoothed by the same σ = 4 px Gaussian, within 0.06 (log units);
