@@ -409,6 +409,39 @@ def test_background_motion_when_the_estimate_follows_a_mover(monkeypatch):
     assert psnr(col.frames[3, ..., 0], s.sharp[3]) > psnr(edi.frames[3], s.sharp[3]) + 1.5
 
 
+def test_disputed_frame_without_a_background_motion_keeps_the_guarded_global_one(monkeypatch):
+    """A tile disputes the global motion, but no background motion holds: the frame is the
+    global motion's guarded deconvolution, exactly as if nothing had disputed it, and the
+    tiles vote once. (A small patch whose global motion the guard keeps; the dispute and the
+    missing background motion are forced.)"""
+    from trmd_cli.motion import tiles
+
+    motion = MotionRanges(translation_px=14, rotation_deg=0.5, scale=0.01, perspective=0,
+                          curvature=0.2, foreground_prob=1.0, max_layers=1,
+                          layer_translation_px=25, layer_size=(0.15, 0.2))
+    s = make_sample(texture(300, 400, seed=0), size=(160, 120), rng=np.random.default_rng(0),
+                    motion=motion, sensor=SensorConfig.clean(0.2), read_noise=0.003)
+    calls = []
+    original = tiles.tile_velocities
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(tiles, "tile_velocities", counted)
+    monkeypatch.setattr(tiles, "outvoted_tiles", lambda *a, **k: np.ones((120, 160), bool))
+    monkeypatch.setattr(tiles, "background_motion", lambda *a, **k: None)
+    monkeypatch.setattr(tiles, "disputed_tiles", lambda *a, **k: [(0, 0)])
+    disputed = MotionMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
+    assert len(calls) == 1
+    monkeypatch.setattr(tiles, "disputed_tiles", lambda *a, **k: [])
+    plain = MotionMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
+    assert disputed.notes == plain.notes == ()
+    assert np.array_equal(disputed.frames, plain.frames)
+    edi = EdiMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
+    assert psnr(plain.frames[3], s.sharp[3]) > psnr(edi.frames[3], s.sharp[3]) + 1.0
+
+
 def test_exact_motion_is_trusted_without_movers():
     """The same scene without the patch: along the true path the guard keeps the
     deconvolution nearly everywhere (measured EDI 31.32 / 29.92, true path 36.62 / 37.37 dB,
