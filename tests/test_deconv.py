@@ -3,6 +3,8 @@ what the motion does not explain), and the guard against EDI."""
 
 from __future__ import annotations
 
+from unittest import mock
+
 import numpy as np
 import pytest
 import torch
@@ -421,19 +423,13 @@ def test_disputed_frame_without_a_background_motion_keeps_the_guarded_global_one
                           layer_translation_px=25, layer_size=(0.15, 0.2))
     s = make_sample(texture(300, 400, seed=0), size=(160, 120), rng=np.random.default_rng(0),
                     motion=motion, sensor=SensorConfig.clean(0.2), read_noise=0.003)
-    calls = []
-    original = tiles.tile_velocities
-
-    def counted(*args, **kwargs):
-        calls.append(1)
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(tiles, "tile_velocities", counted)
+    votes = mock.Mock(wraps=tiles.tile_velocities)
+    monkeypatch.setattr(tiles, "tile_velocities", votes)
     monkeypatch.setattr(tiles, "outvoted_tiles", lambda *a, **k: np.ones((120, 160), bool))
     monkeypatch.setattr(tiles, "background_motion", lambda *a, **k: None)
     monkeypatch.setattr(tiles, "disputed_tiles", lambda *a, **k: [(0, 0)])
     disputed = MotionMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
-    assert len(calls) == 1
+    assert votes.call_count == 1
     monkeypatch.setattr(tiles, "disputed_tiles", lambda *a, **k: [])
     plain = MotionMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
     assert disputed.notes == plain.notes == ()

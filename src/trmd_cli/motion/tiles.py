@@ -21,6 +21,7 @@ from .cmax import (
     _Level,
     _start,
     estimate_motion,
+    warped_image,
     window_points,
 )
 from .model import GlobalMotion
@@ -158,17 +159,15 @@ def disputed_tiles(votes: dict[tuple[int, int], tuple[float, float]], motion: Gl
     """
     import cv2
 
-    from .cmax import warped_image
-
     x, y, u = points
     cols, rows = grid
+    keys = list(votes)
     out = []
-    for (i, j), (vx, vy) in votes.items():
-        cx, cy = np.array([(i + 0.5) * width / cols]), np.array([(j + 0.5) * height / rows])
-        x0, y0 = motion.positions(0.0, cx, cy)
-        x1, y1 = motion.positions(1.0, cx, cy)
-        if np.hypot(x1[0] - x0[0] - vx, y1[0] - y0[0] - vy) <= agree_px:
+    for (i, j), off in zip(keys, _vote_offsets(motion, votes, keys, width, height, grid),
+                           strict=True):
+        if off <= agree_px:
             continue
+        vx, vy = votes[(i, j)]
         sel = ((x >= i * width // cols) & (x < (i + 1) * width // cols)
                & (y >= j * height // rows) & (y < (j + 1) * height // rows))
         own = GlobalMotion((vx, vy), centre=motion.centre)
@@ -233,17 +232,25 @@ def follows_votes(motion: GlobalMotion, votes: dict[tuple[int, int], tuple[float
     bend to a mover's events left inside them (on a noisy scene whose tiles agreed on a few
     pixels, rotation and zoom went to their bounds and the motion was 12 px off the camera's
     path at both ends, 18 px off the votes in the median)."""
-    cols, rows = grid
     keys = _majority(votes, outvoted, width, height, grid)
     if not keys:
         return False
+    off = _vote_offsets(motion, votes, keys, width, height, grid)
+    return bool(np.median(off) <= 2.0 * agree_px)
+
+
+def _vote_offsets(motion: GlobalMotion, votes: dict[tuple[int, int], tuple[float, float]],
+                  keys: list[tuple[int, int]], width: int, height: int,
+                  grid: tuple[int, int] = GRID) -> np.ndarray:
+    """(len(keys),) pixels: how far ``motion``'s displacement over the exposure at each
+    tile's centre is from the velocity the tile voted."""
+    cols, rows = grid
     cx = np.array([(i + 0.5) * width / cols for i, _ in keys])
     cy = np.array([(j + 0.5) * height / rows for _, j in keys])
     x0, y0 = motion.positions(0.0, cx, cy)
     x1, y1 = motion.positions(1.0, cx, cy)
-    voted = np.array([votes[k] for k in keys])
-    off = np.hypot(x1 - x0 - voted[:, 0], y1 - y0 - voted[:, 1])
-    return bool(np.median(off) <= 2.0 * agree_px)
+    voted = np.array([votes[k] for k in keys]).reshape(-1, 2)
+    return np.hypot(x1 - x0 - voted[:, 0], y1 - y0 - voted[:, 1])
 
 
 def _translation_gains(x: np.ndarray, y: np.ndarray, tau: np.ndarray, velocities: np.ndarray,
