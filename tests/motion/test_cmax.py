@@ -164,8 +164,7 @@ def test_cross_only_half_pixel_gain_keeps_the_estimate_off_the_sensor_grid(monke
     """The plain gain on whole pixels (each event's overlap with itself in it) rewards motions
     that carry events, recorded at whole pixels, back onto whole pixels. On a noise-free
     exposure the estimate with it was 0.26 px off the true path, on one of the default sensor
-    0.76 px; with the overlap left out and the last refinement on half-pixel cells, 0.09 and
-    0.19 px."""
+    0.76 px; with the overlap left out, on half-pixel cells, 0.08 and 0.19 px."""
     from trmd_cli.motion import cmax
     from trmd_cli.simulate import SensorConfig
 

@@ -4,21 +4,20 @@ Events are carried back to the middle of the exposure by a candidate
 :class:`~trmd_cli.motion.model.GlobalMotion` and accumulated into an image of warped events
 (IWE, bilinear votes by one ``np.bincount`` on a flat index; an event carried outside the
 sensor votes nowhere). The right motion makes that image sharpest. The objective is its
-variance after a small Gaussian (σ = 1 cell on the coarse grids; 0.7 px at full resolution
-and on the last grid, whose cells are half a pixel, see :data:`FINE_SCALE`), *divided by*
-that of the unwarped events (a normalised gain, as Shiba et al., ECCV 2022, to guard against
-event collapse), with the zoom, rotation and perspective bounded. From full resolution on the
-search leaves out each event's overlap with itself (see :class:`_Level`): what is left
-rewards events that land on each other, not events that land on the grid's cells.
+variance after a small Gaussian (σ = 1 cell on the coarse grids; 0.7 px on the finest, whose
+cells are half a pixel, see :data:`FINE_SCALE`), *divided by* that of the unwarped events (a
+normalised gain, as Shiba et al., ECCV 2022, to guard against event collapse), with the zoom,
+rotation and perspective bounded. On the finest grid the search leaves out each event's
+overlap with itself (see :class:`_Level`): what is left rewards events that land on each
+other, not events that land on the grid's cells.
 
 Search: a grid over the velocity (step 8 px per exposure on an 8× downsampled image, then the
 step-4 neighbours of the best three on 4×), then quasi-Newton (BFGS) ascent on the analytic
 gradient of the gain — translation + acceleration from the best three on 4×, with rotation and
-zoom on 2× and at full resolution, then the perspective at full resolution, kept only
+zoom on 2× and on the finest grid, then the perspective there, kept only
 when it sharpens the events by more than :data:`PERSPECTIVE_MIN_GAIN`, then the
 translation's jerk with everything else free, kept only when it sharpens events it was not
-fitted to by more than :data:`JERK_MIN_GAIN`, and last every parameter in use once more on a
-grid of half-pixel cells. The gradient is exact for the
+fitted to by more than :data:`JERK_MIN_GAIN`. The gradient is exact for the
 bilinear votes: the image's derivative ``2/n · g ∗ (g ∗ IWE − μ)`` read back at each event by
 the derivative of its bilinear stencil, chained through the closed-form warp.
 """
@@ -163,36 +162,32 @@ class _Taps:
 
 
 def _blur(img: np.ndarray, sigma: float = 1.0) -> np.ndarray:
-    """Gaussian of σ = ``sigma`` cells (radius 4 cells, or 3σ when wider) with zeros beyond
-    the border; symmetric, so it is its own transpose."""
+    """Gaussian of σ = ``sigma`` cells (radius 4, 2.9σ on the half-pixel grid) with zeros
+    beyond the border; symmetric, so it is its own transpose."""
     import cv2
 
-    k = _ksize(sigma)
-    return cv2.GaussianBlur(img, (k, k), sigma, borderType=cv2.BORDER_CONSTANT)
-
-
-def _ksize(sigma: float) -> int:
-    return max(9, 2 * math.ceil(3.0 * sigma) + 1)
+    return cv2.GaussianBlur(img, (9, 9), sigma, borderType=cv2.BORDER_CONSTANT)
 
 
 def _kernel(sigma: float) -> np.ndarray:
     """The 1-D taps :func:`_blur` filters with along each axis."""
     import cv2
 
-    return cv2.getGaussianKernel(_ksize(sigma), sigma)[:, 0]
+    return cv2.getGaussianKernel(9, sigma)[:, 0]
 
 
-#: pixels per cell of the grid of the search's last refinement: half a pixel. The bilinear
-#: votes of an event that lands on a cell's centre weigh more in the variance than those of
-#: one that lands between cells, so on whole pixels the plain gain rewards motions that carry
-#: events (recorded at whole pixels) back onto whole pixels: on five Kodak exposures the
-#: estimate's gain there exceeded the true path's by 0.02–0.26 %, 0.13–0.24 px from it.
-#: Leaving out each event's overlap with itself (:class:`_Level`'s ``cross_only``) removes
-#: that reward; half-pixel cells under the same σ = 0.7 px then still bring the estimate
-#: nearer (mean end-point error on 8 + 8 simulated textures of the default and the clean
-#: sensor and 7 Kodak exposures with movers, against the true path: plain 0.27 / 0.19 /
-#: 0.17 px, without the overlap 0.19 / 0.12 / 0.15, and with the last refinement on
-#: half-pixel cells 0.18 / 0.11 / 0.11)
+#: pixels per cell of the finest grid: half a pixel. The bilinear votes of an event that lands
+#: on a cell's centre weigh more in the variance than those of one that lands between cells,
+#: so on whole pixels the plain gain rewards motions that carry events (recorded at whole
+#: pixels) back onto whole pixels: on five Kodak exposures the estimate's gain there exceeded
+#: the true path's by 0.02–0.26 %, 0.13–0.24 px from it. Leaving out each event's overlap
+#: with itself (:class:`_Level`'s ``cross_only``) removes that reward, and half-pixel cells
+#: under the same σ = 0.7 px bring the estimate nearer still. Mean end-point error against the
+#: true path on 8 + 8 simulated textures of the default and the clean sensor and on 7 Kodak
+#: exposures with movers: plain on whole pixels 0.27 / 0.19 / 0.17 px, without the overlap
+#: 0.19 / 0.12 / 0.15, and on half-pixel cells too 0.19 / 0.10 / 0.11 (the pinned set's 48:
+#: 0.159 → 0.126 px). Only a last refinement on half-pixel cells (the rest on whole pixels)
+#: cost a third as much but left the pinned set at 0.137 px, one frame 0.38 px off
 FINE_SCALE = 0.5
 #: σ of the image of warped events' Gaussian: pixels at full resolution and finer (0.7 px,
 #: whatever the cells), cells on the coarser grids. At full resolution a narrower one
@@ -481,7 +476,7 @@ def estimate_motion(events: EventStream, exposure: Exposure,
     # 2× (on sparse events a search that took them up only at full resolution stalled on a
     # wrong velocity), or translation alone there (on dense ones, the safer way)
     mid = _Level(x[half], y[half], u[half], w, h, 2.0, centre, radius)
-    fine = _Level(x, y, u, w, h, 1.0, centre, radius, cross_only=True)
+    fine = _Level(x, y, u, w, h, FINE_SCALE, centre, radius, cross_only=True)
     free = 6 if search.rotation_zoom else 4
     # from a given velocity (the background's, after the first estimate) only the first
     # way: on the frames with movers its estimate was the same to 0.01 dB and 0.04–0.1 s
@@ -506,19 +501,15 @@ def estimate_motion(events: EventStream, exposure: Exposure,
         # judged on events it was not fitted to: fitted on every other event, kept only when
         # it sharpens the rest (a jerk fitted to all 16k events of a uniform translation
         # raised their gain by 0.35 % and doubled the end-point error)
-        fit = _Level(x[0::2], y[0::2], u[0::2], w, h, 1.0, centre, radius, cross_only=True)
-        held = _Level(x[1::2], y[1::2], u[1::2], w, h, 1.0, centre, radius, cross_only=True)
+        fit = _Level(x[0::2], y[0::2], u[0::2], w, h, FINE_SCALE, centre, radius,
+                     cross_only=True)
+        held = _Level(x[1::2], y[1::2], u[1::2], w, h, FINE_SCALE, centre, radius,
+                      cross_only=True)
         qa = refine(fit, q, sel, 0.25)
         if held.gain(qa) > held.gain(q) * (1.0 + JERK_MIN_GAIN):
             qj = refine(fine, qa, sel, 0.25)
             if fine.gain(qj) > fine.gain(q):
                 q = qj
-    # last, every parameter in use once more on half-pixel cells (:data:`FINE_SCALE`), from
-    # near their optimum: the whole search there cost 0.17 s more per estimate for the same
-    # end-point error (0.19 / 0.10 / 0.11 px against 0.18 / 0.11 / 0.11 on three sets), this
-    # step 0.05 s
-    sel = [i for i in range(10) if i < free or q[i] != 0.0]
-    q = refine(_Level(x, y, u, w, h, FINE_SCALE, centre, radius, cross_only=True), q, sel, 0.1)
     # the confidence as the guard reads it everywhere: the gain with the 1-pixel Gaussian
     # (:func:`~trmd_cli.motion.sampled.event_gain`), whatever σ the search used
     score = _Level(x, y, u, w, h, 1.0, centre, radius, sigma=1.0)
