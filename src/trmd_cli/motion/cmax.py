@@ -161,12 +161,13 @@ class _Taps:
         return gxs, gys
 
 
-def _blur(img: np.ndarray, sigma: float = 1.0) -> np.ndarray:
+def _blur(img: np.ndarray, sigma: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
     """Gaussian of σ = ``sigma`` cells (radius 4, 2.9σ on the half-pixel grid) with zeros
-    beyond the border; symmetric, so it is its own transpose."""
+    beyond the border; symmetric, so it is its own transpose. ``out``: an array of ``img``'s
+    shape and type (a view of rows is fine) to write into."""
     import cv2
 
-    return cv2.GaussianBlur(img, (9, 9), sigma, borderType=cv2.BORDER_CONSTANT)
+    return cv2.GaussianBlur(img, (9, 9), sigma, dst=out, borderType=cv2.BORDER_CONSTANT)
 
 
 def _kernel(sigma: float) -> np.ndarray:
@@ -290,6 +291,8 @@ class _Level:
         """The gain at ``q`` and (with ``gradient``) its gradient in ``q`` (only the
         first ``free`` entries are computed, the rest are 0; the jerk's two, ``q[8:10]``,
         with ``free = 10``)."""
+        import cv2
+
         rx, ry, a, b = self._warp(q)
         inv_d = self._perspective(q, rx, ry)
         mx, my = (rx, ry) if inv_d is None else (rx * inv_d, ry * inv_d)
@@ -329,20 +332,23 @@ class _Level:
         votes = np.bincount(idx, wts, minlength=(h + 4) * stride)
         # the filter in float32 too (several times faster in OpenCV than in float64)
         img = _blur(votes.reshape(h + 4, stride)[2:-2, 2:-2].astype(np.float32), self.sigma)
-        dev = img - img.mean()
-        g = float((dev * dev).mean()) / self.base
+        # mean and variance in one pass (accumulated in float64)
+        mean, std = cv2.meanStdDev(img)
+        g = float(std[0, 0]) ** 2 / self.base
         if self.cross_only:
             c0, dc = self._c0, 2.0 * (self._c0 - self._c1)
             sx = c0 - dc * fx * (1.0 - fx)
             sy = c0 - dc * fy * (1.0 - fy)
-            k_self = 1.0 / (dev.size * self.base)
+            k_self = 1.0 / (img.size * self.base)
             # (every event's, also one voting into the margin: continuous as it leaves)
             g -= float(np.dot(sx, sy)) * k_self
         if not gradient:
             return g, None
         # d var / d image = (2 / n) gᵀ(g ∗ I − μ): the mean's own term sums to zero
         pad = work["pad"]
-        pad[2:-2, 2:-2] = _blur(dev, self.sigma) * (2.0 * inv / (dev.size * self.base))
+        img -= float(mean[0, 0])
+        img *= 2.0 * inv / (img.size * self.base)
+        _blur(img, self.sigma, out=pad[2:-2, 2:-2])
         flat = pad.reshape(-1)
         r00, r10, r01, r11 = f[2], f[3], f[4], f[5]
         np.take(flat, i0, out=r00)
