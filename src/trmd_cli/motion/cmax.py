@@ -187,7 +187,7 @@ def _kernel(sigma: float) -> np.ndarray:
 #: true path on 8 + 8 simulated textures of the default and the clean sensor and on 7 Kodak
 #: exposures with movers: plain on whole pixels 0.27 / 0.19 / 0.17 px, without the overlap
 #: 0.19 / 0.12 / 0.15, and on half-pixel cells too 0.19 / 0.10 / 0.11 (the pinned set's 48:
-#: 0.159 → 0.126 px). Only a last refinement on half-pixel cells (the rest on whole pixels)
+#: 0.159 → 0.125 px). Only a last refinement on half-pixel cells (the rest on whole pixels)
 #: cost a third as much but left the pinned set at 0.137 px, one frame 0.38 px off
 FINE_SCALE = 0.5
 #: σ of the image of warped events' Gaussian: pixels at full resolution and finer (0.7 px,
@@ -206,7 +206,9 @@ class _Level:
     ay, ω·R, ζ·R, πx·R², πy·R²) (pixels per exposure, per exposure², and the rotation, zoom
     and perspective scaled by the radius ``R`` so that every parameter moves a far pixel by
     comparable amounts). The warp is :meth:`GlobalMotion.to_middle` written out on per-level
-    constants."""
+    constants. With ``cross_only`` the numerator leaves out each event's overlap with itself,
+    ``Σ‖g ∗ its votes‖² / cells`` (see :data:`FINE_SCALE`); the denominator stays the plain
+    variance, so the gain is then below the plain one by about that share."""
 
     def __init__(self, x, y, u, width, height, scale, centre, radius,
                  sigma: float | None = None, cross_only: bool = False):
