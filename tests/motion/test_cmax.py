@@ -134,7 +134,6 @@ def test_jerk_follows_a_bending_path():
     assert true_epe(plan, m) < true_epe(plan, flat) - 0.05
 
 
-
 @pytest.mark.parametrize("scale", [1.0, 0.5])
 def test_cross_only_gain_does_not_care_where_a_lone_event_lands(scale):
     """One event's blurred votes have a variance that depends on where in its cell it lands

@@ -161,20 +161,25 @@ class _Taps:
         return gxs, gys
 
 
+#: taps of :func:`_blur`'s Gaussian along each axis (radius 4 cells: 2.9σ on the half-pixel grid)
+_TAPS = 9
+
+
 def _blur(img: np.ndarray, sigma: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
-    """Gaussian of σ = ``sigma`` cells (radius 4, 2.9σ on the half-pixel grid) with zeros
-    beyond the border; symmetric, so it is its own transpose. ``out``: an array of ``img``'s
-    shape and type (a view of rows is fine) to write into."""
+    """Gaussian of σ = ``sigma`` cells (:data:`_TAPS` taps) with zeros beyond the border;
+    symmetric, so it is its own transpose. ``out``: an array of ``img``'s shape and type (a
+    view of rows is fine) to write into."""
     import cv2
 
-    return cv2.GaussianBlur(img, (9, 9), sigma, dst=out, borderType=cv2.BORDER_CONSTANT)
+    return cv2.GaussianBlur(img, (_TAPS, _TAPS), sigma, dst=out,
+                            borderType=cv2.BORDER_CONSTANT)
 
 
 def _kernel(sigma: float) -> np.ndarray:
     """The 1-D taps :func:`_blur` filters with along each axis."""
     import cv2
 
-    return cv2.getGaussianKernel(9, sigma)[:, 0]
+    return cv2.getGaussianKernel(_TAPS, sigma)[:, 0]
 
 
 #: pixels per cell of the finest grid: half a pixel. The bilinear votes of an event that lands
@@ -232,8 +237,9 @@ class _Level:
         # c0 − 2·(c0 − c1)·f·(1 − f) at a fraction f of a cell, with c0 and c1 the kernel's
         # autocorrelation at lags 0 and 1 (1 at f = 0, ½ at f = ½ without the Gaussian)
         self.cross_only = cross_only
-        taps = _kernel(sigma)
-        self._c0, self._c1 = float(taps @ taps), float(taps[:-1] @ taps[1:])
+        if cross_only:
+            taps = _kernel(sigma)
+            self._c0, self._c1 = float(taps @ taps), float(taps[:-1] @ taps[1:])
         img = _blur(_votes(x / scale, y / scale, self.w, self.h), self.sigma)
         self.base = max(float(img.var()), 1e-12)
 
