@@ -170,6 +170,17 @@ def test_translation_gains_equal_the_searchs_own_gain():
         expected = [level.gain(_start(vx, vy)) * level.base for vx, vy in velocities]
         got = _translation_gains(x, y, u - 0.5, velocities, W, H, scale)
         np.testing.assert_allclose(got, expected, rtol=2e-4)
+    # a tile's events, drawn on the part of the grid they reach: in a corner (some carried
+    # off the sensor) and inside (the part's edges all within the sensor)
+    for x0, y0 in ((0.0, 0.0), (50.0, 40.0)):
+        cx, cy = x0 + rng.uniform(0, 60, 600), y0 + rng.uniform(0, 50, 600)
+        cu = rng.uniform(0, 1, 600)
+        for scale in (8.0, 4.0):
+            level = _Level(cx, cy, cu, W, H, scale, ((W - 1) / 2, (H - 1) / 2), 0.5 * W,
+                           sigma=1.0)
+            expected = [level.gain(_start(vx, vy)) * level.base for vx, vy in velocities]
+            got = _translation_gains(cx, cy, cu - 0.5, velocities, W, H, scale)
+            np.testing.assert_allclose(got, expected, rtol=2e-4)
 
 
 def test_follows_votes_by_hand():

@@ -260,25 +260,38 @@ def _translation_gains(x: np.ndarray, y: np.ndarray, tau: np.ndarray, velocities
     exposure), all at once: (K,) variances of their images of warped events on a grid
     ``scale`` times coarser, bilinear votes blurred by a σ = 1 cell Gaussian (as
     :class:`~trmd_cli.motion.cmax._Level` makes them; the unwarped image's variance, the
-    same for every candidate, is left out)."""
+    same for every candidate, is left out).
+
+    The images are drawn on the part of the grid the votes and their blur can reach (a
+    tile's events: a fifth to a half of the sensor's cells), and the variance is taken over
+    the whole grid from the sums over that part: the cells beyond it hold zeros."""
     from scipy.ndimage import gaussian_filter
 
     w, h = int(np.ceil(width / scale)), int(np.ceil(height / scale))
-    stride, rows = w + 4, h + 4
     k = len(velocities)
+    if not len(x):
+        return np.zeros(k)
     f32 = np.float32
     v = (velocities / scale).astype(f32)
+    # cells of the reach of the farthest carried event, its bilinear votes and the blur's
+    # taps (4 cells, as ``truncate=4``), with one to spare
+    reach = float(np.abs(v).max(initial=0.0)) * float(np.abs(tau).max(initial=0.0)) + 6.0
+    bx0 = max(int(np.floor(x.min() / scale - reach)), 0)
+    by0 = max(int(np.floor(y.min() / scale - reach)), 0)
+    bw = min(int(np.ceil(x.max() / scale + reach)), w) - bx0
+    bh = min(int(np.ceil(y.max() / scale + reach)), h) - by0
+    stride, rows = bw + 4, bh + 4
     xs = (x / scale).astype(f32)[None, :] - v[:, :1] * tau.astype(f32)[None, :]
     ys = (y / scale).astype(f32)[None, :] - v[:, 1:] * tau.astype(f32)[None, :]
-    # clipped into a two-cell margin, cropped away: an event carried off the grid votes
-    # nowhere that counts (see cmax._Taps)
+    # clipped into a two-cell margin of the sensor's grid, cropped away: an event carried
+    # off the grid votes nowhere that counts (see cmax._Taps)
     np.clip(xs, -2.0, w + 0.5, out=xs)
     np.clip(ys, -2.0, h + 0.5, out=ys)
     x0, y0 = np.floor(xs), np.floor(ys)
     fx, fy = xs - x0, ys - y0
     gx, gy = 1 - fx, 1 - fy
-    base = (np.arange(k)[:, None] * rows + y0.astype(np.intp) + 2) * stride + \
-        x0.astype(np.intp) + 2
+    base = (np.arange(k)[:, None] * rows + y0.astype(np.intp) + (2 - by0)) * stride + \
+        x0.astype(np.intp) + (2 - bx0)
     acc = np.bincount(np.concatenate([base.ravel(), (base + 1).ravel(),
                                       (base + stride).ravel(), (base + stride + 1).ravel()]),
                       np.concatenate([(gx * gy).ravel(), (fx * gy).ravel(),
@@ -286,4 +299,7 @@ def _translation_gains(x: np.ndarray, y: np.ndarray, tau: np.ndarray, velocities
                       minlength=k * rows * stride)
     img = acc.reshape(k, rows, stride)[:, 2:-2, 2:-2].astype(np.float32)
     img = gaussian_filter(img, (0, 1.0, 1.0), mode="constant", truncate=4.0)
-    return img.reshape(k, -1).var(axis=1).astype(np.float64)
+    flat = img.reshape(k, -1).astype(np.float64)
+    cells = w * h
+    mean = flat.sum(axis=1) / cells
+    return np.einsum("ij,ij->i", flat, flat) / cells - mean * mean
