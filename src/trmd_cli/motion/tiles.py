@@ -20,6 +20,7 @@ from .cmax import (
     _ascend,
     _Level,
     _start,
+    _votes,
     estimate_motion,
     warped_image,
     window_points,
@@ -62,8 +63,7 @@ def tile_velocities(events: EventStream, exposure: Exposure,
     x, y, u = window_points(events, exposure, hot_mask)
     centre, radius = ((w - 1) / 2, (h - 1) / 2), 0.5 * max(w, h)
     cols, rows = grid
-    tile = np.minimum((x * cols / w).astype(np.int64), cols - 1) * rows + \
-        np.minimum((y * rows / h).astype(np.int64), rows - 1)
+    tile = _tile_index(x, y, w, h, grid)
     order = np.argsort(tile, kind="stable")
     bounds = np.searchsorted(tile[order], np.arange(cols * rows + 1))
     vmax = search.max_velocity_px
@@ -114,6 +114,15 @@ def tile_velocities(events: EventStream, exposure: Exposure,
     return {(k // rows, k % rows): v for (k, _), v in zip(voters, velocities, strict=True)}
 
 
+def _tile_index(x: np.ndarray, y: np.ndarray, width: int, height: int,
+                grid: tuple[int, int] = GRID) -> np.ndarray:
+    """The tile (``column · rows + row``) each point (x, y) (pixels) lies in: column
+    ``⌊x · cols / W⌋``, row ``⌊y · rows / H⌋``."""
+    cols, rows = grid
+    return np.minimum((x * cols / width).astype(np.int64), cols - 1) * rows + \
+        np.minimum((y * rows / height).astype(np.int64), rows - 1)
+
+
 def outvoted_tiles(votes: dict[tuple[int, int], tuple[float, float]], width: int, height: int,
                    grid: tuple[int, int] = GRID, agree_px: float = AGREE_PX) -> np.ndarray | None:
     """(H, W) bool: the tiles whose velocity is not the one most tiles share (within
@@ -160,20 +169,26 @@ def disputed_tiles(votes: dict[tuple[int, int], tuple[float, float]], motion: Gl
     import cv2
 
     x, y, u = points
-    cols, rows = grid
+    rows = grid[1]
     keys = list(votes)
     out = []
+    tile = None
     for (i, j), off in zip(keys, _vote_offsets(motion, votes, keys, width, height, grid),
                            strict=True):
         if off <= agree_px:
             continue
+        if tile is None:
+            tile = _tile_index(x, y, width, height, grid)
+        # the events the tile voted with (a busy window holds 10⁵–10⁶: each drawn once)
+        sel = np.flatnonzero(tile == i * rows + j)
+        xs, ys, us = x[sel], y[sel], u[sel]
         vx, vy = votes[(i, j)]
-        sel = ((x >= i * width // cols) & (x < (i + 1) * width // cols)
-               & (y >= j * height // rows) & (y < (j + 1) * height // rows))
         own = GlobalMotion((vx, vy), centre=motion.centre)
-        var = [float(cv2.GaussianBlur(warped_image(m, x[sel], y[sel], u[sel], width, height)
-                                      .astype(np.float32), (0, 0), 1.0).var())
-               for m in (own, motion, GlobalMotion(centre=motion.centre))]
+        # (the events as recorded: no motion to carry them by)
+        var = [float(cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0).var())
+               for img in (warped_image(own, xs, ys, us, width, height),
+                           warped_image(motion, xs, ys, us, width, height),
+                           _votes(xs, ys, width, height))]
         if var[0] > min_gain * max(var[1], var[2]):
             out.append((i, j))
     return out
