@@ -32,6 +32,18 @@ def test_outvoted_tiles_by_hand():
     assert np.array_equal(mask, expected)
 
 
+def test_outvoted_tiles_are_the_pixels_whose_events_voted_there():
+    """On a 346×260 sensor the 4 × 3 tiles are not whole pixels wide: tile (1, 1) holds the
+    events of columns 87–172 (x · 4 / 346 in [1, 2)) and rows 87–173 (y · 3 / 260 in [1, 2)),
+    and its mask is those pixels."""
+    votes = {(i, j): (4.0, 0.0) for i in range(4) for j in range(3)}
+    votes[(1, 1)] = (30.0, 0.0)
+    mask = outvoted_tiles(votes, 346, 260)
+    expected = np.zeros((260, 346), bool)
+    expected[87:174, 87:173] = True
+    assert np.array_equal(mask, expected)
+
+
 def test_outvoted_tiles_needs_a_disagreement_and_three_votes():
     assert outvoted_tiles({(i, 0): (1.0, 2.0) for i in range(4)}, W, H) is None
     assert outvoted_tiles({(0, 0): (0.0, 0.0), (1, 0): (30.0, 0.0)}, W, H) is None
@@ -213,3 +225,16 @@ def test_estimate_from_a_start_velocity():
     x, y = m.positions(1.0, np.array([40.0, 120.0]), np.array([30.0, 90.0]))
     assert np.allclose(x - [40.0, 120.0], 6.0, atol=0.2)
     assert np.allclose(y - [30.0, 90.0], -3.0, atol=0.2)
+
+
+def test_tile_index_by_hand():
+    """A 346×260 sensor in 4 × 3 tiles: columns split at x = 86.5, 173 and 259.5, rows at
+    y = 86.67 and 173.33 (pixel coordinates), the tile numbered column · 3 + row; the tiles
+    the votes are cast in are those a dispute reads."""
+    from trmd_cli.motion.tiles import _tile_index
+
+    x = np.array([0.0, 86.0, 87.0, 172.0, 173.0, 259.0, 260.0, 345.0, 345.0])
+    y = np.array([0.0, 86.0, 87.0, 173.0, 174.0, 0.0, 259.0, 0.0, 259.0])
+    expected = [0 * 3 + 0, 0 * 3 + 0, 1 * 3 + 1, 1 * 3 + 1, 2 * 3 + 2, 2 * 3 + 0, 3 * 3 + 2,
+                3 * 3 + 0, 3 * 3 + 2]
+    assert _tile_index(x, y, 346, 260, (4, 3)).tolist() == expected
