@@ -32,18 +32,6 @@ def test_outvoted_tiles_by_hand():
     assert np.array_equal(mask, expected)
 
 
-def test_outvoted_tiles_are_the_pixels_whose_events_voted_there():
-    """On a 346×260 sensor the 4 × 3 tiles are not whole pixels wide: tile (1, 1) holds the
-    events of columns 87–172 (x · 4 / 346 in [1, 2)) and rows 87–173 (y · 3 / 260 in [1, 2)),
-    and its mask is those pixels."""
-    votes = {(i, j): (4.0, 0.0) for i in range(4) for j in range(3)}
-    votes[(1, 1)] = (30.0, 0.0)
-    mask = outvoted_tiles(votes, 346, 260)
-    expected = np.zeros((260, 346), bool)
-    expected[87:174, 87:173] = True
-    assert np.array_equal(mask, expected)
-
-
 def test_outvoted_tiles_needs_a_disagreement_and_three_votes():
     assert outvoted_tiles({(i, 0): (1.0, 2.0) for i in range(4)}, W, H) is None
     assert outvoted_tiles({(0, 0): (0.0, 0.0), (1, 0): (30.0, 0.0)}, W, H) is None

@@ -136,11 +136,13 @@ def outvoted_tiles(votes: dict[tuple[int, int], tuple[float, float]], width: int
     best = int(np.argmax(near.sum(1)))
     if near[best].all():
         return None
-    rows = grid[1]
-    out = [i * rows + j for (i, j), agrees in zip(keys, near[best], strict=True) if not agrees]
-    # each pixel in the tile its events voted in
-    ys, xs = np.mgrid[0:height, 0:width]
-    return np.isin(_tile_index(xs, ys, width, height, grid), out)
+    cols, rows = grid
+    mask = np.zeros((height, width), bool)
+    for (i, j), agrees in zip(keys, near[best], strict=True):
+        if not agrees:
+            mask[j * height // rows:(j + 1) * height // rows,
+                 i * width // cols:(i + 1) * width // cols] = True
+    return mask
 
 
 def disputed_tiles(votes: dict[tuple[int, int], tuple[float, float]], motion: GlobalMotion,
