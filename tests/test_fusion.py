@@ -126,21 +126,26 @@ def test_fused_with_an_untrained_network_is_the_motion_method(tmp_path):
 
 @pytest.mark.skipif(not (default_fusion_path().is_file() and default_weights_path().is_file()),
                     reason="no shipped fusion weights")
-def test_shipped_fusion_beats_the_motion_method_on_a_clean_sample():
-    """A synthetic camera shake with known ground truth: the shipped fusion is above the motion
-    method (which it starts from) on the middle frame and the sequence."""
+def test_shipped_fusion_beats_the_motion_method_on_clean_samples():
+    """Synthetic camera shakes with known ground truth: in the mean over four of them the
+    shipped fusion is above the motion method (which it starts from) on the middle frame and
+    the sequence. (One sample alone can go either way: over twelve, the network's margin
+    ranged from −0.2 to +1.5 dB on the middle frame, +0.4 in the mean.)"""
     from trmd_cli.metrics import psnr
 
-    s = _sample(seed=5)
-    fused = FusedMethod(3, threads=1)(s.blurry, s.events, s.exposure)
-    alone = MotionMethod(3, contrast=fused.contrast)(s.blurry, s.events, s.exposure)
+    def seq(frames, sharp):
+        return float(np.mean([psnr(np.clip(a, 0, 1), b) for a, b in zip(frames, sharp)]))
 
-    def seq(frames):
-        return float(np.mean([psnr(np.clip(a, 0, 1), b) for a, b in zip(frames, s.sharp)]))
-
-    assert psnr(np.clip(fused.frames[3], 0, 1), s.sharp[3]) > \
-        psnr(np.clip(alone.frames[3], 0, 1), s.sharp[3])
-    assert seq(fused.frames) > seq(alone.frames)
+    mid, whole = [], []
+    for seed in (2, 3, 4, 5):
+        s = _sample(seed=seed)
+        fused = FusedMethod(3, threads=1)(s.blurry, s.events, s.exposure)
+        alone = MotionMethod(3, contrast=fused.contrast)(s.blurry, s.events, s.exposure)
+        mid.append(psnr(np.clip(fused.frames[3], 0, 1), s.sharp[3])
+                   - psnr(np.clip(alone.frames[3], 0, 1), s.sharp[3]))
+        whole.append(seq(fused.frames, s.sharp) - seq(alone.frames, s.sharp))
+    assert np.mean(mid) > 0
+    assert np.mean(whole) > 0
 
 
 @needs_weights
