@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
 from .errors import InputError, TrmdError
+from .threads import usable_cores
 
 if TYPE_CHECKING:  # not at run time: the CLI imports this module before it knows the mode
     from .deblur import FrameResult
@@ -58,7 +59,8 @@ __all__ = [
     "frame_folder_name", "worker_threads", "ranks_from_env", "RECORDING_SUFFIXES", "Unit",
     "open_item", "swap_in", "run_pool", "run_plan", "todo", "agreed", "joined",
     "recording_folders", "plan_items", "Tally", "staged", "run_staged", "Outcome",
-    "from_rank0",
+    "from_rank0", "auto_jobs", "choose_jobs", "count_work", "free_memory_bytes",
+    "AUTO_METHODS",
 ]
 
 #: one piece of a run's work: (recording, frame) for deblur; plans of their own may add a tag
@@ -459,13 +461,14 @@ class ShareReport:
     """What one process's share said.
 
     Attributes:
-        frames: frames written. warnings: per-frame messages for the user.
+        frames: frames written. warnings: ((recording, frame), message) for the user, of every
+            frame written.
         contrast_notes: ((recording, frame), frame name, note or None, reliable) of every
             frame written, for ``ContrastNotes`` (in output order once sorted).
     """
 
     frames: int = 0
-    warnings: tuple[str, ...] = ()
+    warnings: tuple[tuple[tuple[int, int], str], ...] = ()
     contrast_notes: tuple[tuple[tuple[int, int], str, str | None, bool], ...] = ()
 
 
@@ -503,7 +506,7 @@ class Tally:
     def __init__(self, tick: Callable[[], None] = lambda: None) -> None:
         self.tick = tick
         self.units = 0
-        self.warnings: list[str] = []
+        self.warnings: list[tuple[tuple[int, int], str]] = []
         self.notes: list[tuple[tuple[int, int], str, str | None, bool]] = []
 
     def deblurred(self, r: int, positions: Sequence[int], results: Iterable[FrameResult]
@@ -517,7 +520,7 @@ class Tally:
 
         with closing(ahead(results)) as made:
             for k, res in zip(positions, made, strict=True):
-                self.warnings.extend(res.warnings)
+                self.warnings.extend(((r, k), w) for w in res.warnings)
                 self.notes.append(((r, k), res.name, res.estimate.contrast_note,
                                    bool(res.estimate.contrast_reliable)))
                 yield k, res
@@ -629,9 +632,90 @@ def worker_threads(jobs: int, threads: int | None, cores: int | None = None) -> 
     that ``jobs`` × threads ≤ cores (at least 1)."""
     if threads is not None:
         return threads
-    cores = cores if cores is not None else len(os.sched_getaffinity(0)) \
-        if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    cores = cores if cores is not None else usable_cores()
     return max(1, cores // max(jobs, 1))
+
+
+#: methods ``--jobs auto`` shares out over worker processes. Their frames take about a second
+#: each, much of it on one core (contrast maximisation, the tiles' votes), so one process
+#: leaves the others idle. 48 simulated 346×260 frames on 2 cores: ``motion`` 63 → 35 s and
+#: ``fused`` 87 → 59 s with two workers; ``trmd`` 18 s either way (its network already keeps
+#: every core busy) and ``edi`` loses the workers' start-up (esl-cups' 8 frames: 1.1 → 1.7 s)
+AUTO_METHODS = frozenset({"motion", "fused"})
+#: pixels × frames (or exposures) each worker of ``--jobs auto`` gets at least, four 346×260
+#: frames: starting one (importing torch, reading the weights, the recording's threshold) costs
+#: one or two of those frames
+AUTO_MIN_WORK = 4 * 346 * 260
+#: at most this many workers, and no more than free memory holds at
+#: :data:`AUTO_WORKER_BYTES` each (a 346×260 frame of ``motion`` peaks near 1.2–1.5 GB)
+AUTO_MAX_JOBS = 8
+AUTO_WORKER_BYTES = 3 << 29
+
+
+def auto_jobs(method: str, work: int, threads: int | None = None, *,
+              cores: int | None = None, free_bytes: int | None = None) -> int:
+    """Worker processes ``--jobs auto`` starts for ``work`` (frames × pixels per frame) of
+    ``method``: one per ``threads`` cores (one per core by default) for the methods of
+    :data:`AUTO_METHODS`, each with at least :data:`AUTO_MIN_WORK`, at most
+    :data:`AUTO_MAX_JOBS` and as many as ``free_bytes`` of memory hold (None: not limited); 1
+    (one process, as ``--jobs 1``) for the other methods. ``cores``: the usable cores (default:
+    this process's)."""
+    if method not in AUTO_METHODS:
+        return 1
+    cores = usable_cores() if cores is None else cores
+    jobs = min(cores // max(threads or 1, 1), work // AUTO_MIN_WORK, AUTO_MAX_JOBS)
+    if free_bytes is not None:
+        jobs = min(jobs, free_bytes // AUTO_WORKER_BYTES)
+    return max(int(jobs), 1)
+
+
+def choose_jobs(requested: int | None, config: MethodConfig, count: Callable[[], int], *,
+                ranks: Ranks, in_order: bool = False) -> int:
+    """The worker processes of a run: ``requested`` when given (``--jobs K``), else
+    :func:`auto_jobs` for the run's ``count()`` (frames × pixels, :func:`count_work`; called
+    only when it matters). One
+    under torchrun (the ranks are the processes), when the outputs must be made in order in
+    one process (``in_order``: a video), or when the method's network runs on a GPU."""
+    if requested is not None:
+        return requested
+    if ranks.enabled or in_order or config.method not in AUTO_METHODS:
+        return 1
+    if config.method != "motion" and config.device != "cpu":
+        from .models.weights import resolve_device
+
+        if resolve_device(config.device).type != "cpu":
+            return 1
+    return auto_jobs(config.method, count(), config.threads, free_bytes=free_memory_bytes())
+
+
+def count_work(inputs: Sequence[Path], recordings: Sequence[Path] | None,
+               read: ReadOptions, exposure=None, offset_us: int = 0) -> int:
+    """Frames × pixels per frame of a run's inputs (every recording of ``recordings``, or
+    ``inputs``); 0 for a blurry image and its events (one frame: nothing to share out), the
+    files unopened."""
+    from .read.frames import IMAGE_EXTENSIONS
+    from .read.inputs import open_inputs
+
+    if recordings is None and len(inputs) == 2 and inputs[0].is_file() \
+            and inputs[0].suffix.lower() in IMAGE_EXTENSIONS:
+        return 0
+    total = 0
+    for group in ([[p] for p in recordings] if recordings is not None else [list(inputs)]):
+        with open_inputs(group, read, exposure=exposure, offset_us=offset_us) as ins:
+            total += len(ins.source) * ins.source.width * ins.source.height
+    return total
+
+
+def free_memory_bytes() -> int | None:
+    """Memory available to new processes (Linux: ``MemAvailable``); None where unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 # --------------------------------------------------------------------------------------------
@@ -825,11 +909,18 @@ def run_pool(plan: Plan, stage: Stage, units: Sequence[Unit], jobs: int,
             else:
                 raise ShardError(msg[1], msg[2])
     finally:
-        for p in procs:
-            if p.is_alive():
-                p.terminate()  # SIGTERM: its writers clean up their temporaries
-        for p in procs:
-            p.join()
+        from .signals import deferred
+
+        # a second signal (a terminal's Ctrl-C reaches the group, `timeout` signals this
+        # process and then its group) is held until the workers are gone: raised in the join,
+        # it would leave them to multiprocessing's exit handler, whose second SIGTERM lands in
+        # their cleanup
+        with deferred():
+            for p in procs:
+                if p.is_alive():
+                    p.terminate()  # SIGTERM: its writers clean up their temporaries
+            for p in procs:
+                p.join()
     return reports
 
 
@@ -997,11 +1088,13 @@ def run_staged(make: Callable[..., Plan], inputs: Sequence[Path],
 
 
 def _said(reports: Sequence[ShareReport]) -> list[str]:
-    """What the shares said: their warnings, then the contrast notes of all their frames, in
-    output order and told once (``ContrastNotes``)."""
+    """What the shares said: their frames' warnings, then their contrast notes, in output
+    order (as one process says them, whichever process made which frame); the notes told once
+    (``ContrastNotes``)."""
     from .deblur import ContrastNotes
 
     notes = ContrastNotes()
     for _, name, note, reliable in sorted(n for r in reports for n in r.contrast_notes):
         notes.add_note(name, note, reliable)
-    return [w for r in reports for w in r.warnings] + notes.lines()
+    said = sorted((n for r in reports for n in r.warnings), key=lambda n: n[0])
+    return [w for _, w in said] + notes.lines()

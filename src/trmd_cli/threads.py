@@ -21,7 +21,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-__all__ = ["RowBlocks", "product_threads", "run_split", "map_shared", "beside"]
+__all__ = ["RowBlocks", "product_threads", "usable_cores", "run_split", "map_shared",
+           "beside"]
 
 #: fewer stored entries than this: one product, no threads (their hand-off would cost more)
 MIN_SPLIT_NNZ = 200_000
@@ -40,9 +41,14 @@ def product_threads() -> int:
     if torch is not None:
         count = int(torch.get_num_threads())
     else:
-        count = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else \
-            (os.cpu_count() or 1)
+        count = usable_cores()
     return max(1, min(count, 4))
+
+
+def usable_cores() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else \
+        (os.cpu_count() or 1)
 
 
 def _pool(threads: int) -> ThreadPoolExecutor:

@@ -197,7 +197,7 @@ def test_deblur_killed_leaves_temps_that_the_next_run_sweeps(tmp_path, long_rec,
 def test_hfr_interrupted(tmp_path, long_rec, out_name, sig, code, word):
     out = tmp_path / out_name
     before = previous_output(out)
-    proc = launch("hfr", str(long_rec), "-o", str(out), "--overwrite")
+    proc = launch("hfr", str(long_rec), "-o", str(out), "--overwrite", "--jobs", "1")
     if out_name.endswith(".mp4"):
         ready = lambda: bool(temps(tmp_path)) and bool(children(proc.pid))  # noqa: E731
         what = "the encoder started"
@@ -222,7 +222,7 @@ def test_hfr_interrupted(tmp_path, long_rec, out_name, sig, code, word):
 def test_hfr_mp4_killed_leaves_a_temp_that_the_next_run_sweeps(tmp_path, long_rec, short_rec):
     out = tmp_path / "slowmo.mp4"
     before = previous_output(out)
-    proc = launch("hfr", str(long_rec), "-o", str(out), "--overwrite")
+    proc = launch("hfr", str(long_rec), "-o", str(out), "--overwrite", "--jobs", "1")
     wait_until(proc, lambda: bool(temps(tmp_path)) and bool(children(proc.pid)),
                "the encoder started")
     encoder = children(proc.pid)

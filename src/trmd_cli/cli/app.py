@@ -17,7 +17,8 @@ from .boundary import state
 app = typer.Typer(
     name="trmd",
     help="Deblur event-camera frames: a blurry frame + the events of its exposure → 2N+1 sharp "
-    "frames (TRMD or EDI).",
+    "frames (by default TRMD and the deconvolution along the events' motion, fused; or "
+    "either alone, or EDI).",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,

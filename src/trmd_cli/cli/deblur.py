@@ -36,6 +36,7 @@ from .options import (
     TimeUnit,
     Topics,
     parse_duration_us,
+    parse_jobs,
     read_options,
 )
 
@@ -64,9 +65,12 @@ Weights = Annotated[Path | None, typer.Option("--weights", help="RE-Net weights 
 HotPixels = Annotated[bool, typer.Option("--hot-pixels/--keep-hot-pixels",
                                          help="Ignore the events of hot pixels (default on).")]
 BitDepth = Annotated[int, typer.Option("--bit-depth", help="PNG bit depth: 8 or 16.")]
-Jobs = Annotated[int, typer.Option(
+Jobs = Annotated[str, typer.Option(
     "--jobs", "-j", help="Worker processes on this machine, each on its share of the frames "
-    "(torch threads per worker: the cores shared out, unless --threads). Across machines, "
+    "(torch threads per worker: the cores shared out, unless --threads). auto (the "
+    "default): for the motion and fused methods one per core, each with at least the work of "
+    "four 346x260 frames, at most 8, and 1.5 GB of free memory each; else one. Across "
+    "machines, "
     "launch the command with torchrun instead: each rank takes frames rank, rank + world, …; "
     "rank 0 writes meta.json and the output once every rank is done.")]
 Resume = Annotated[bool, typer.Option(
@@ -162,7 +166,7 @@ def deblur(
     stamp: Stamp = None,
     topics: Topics = None,
     overwrite: Overwrite = False,
-    jobs: Jobs = 1,
+    jobs: Jobs = "auto",
     resume: Resume = False,
 ) -> None:
     """Deblur: write 2N+1 sharp frames per blurry frame, plus sharp.png, timestamps.txt and
@@ -171,9 +175,18 @@ def deblur(
     Several recordings (REC1 REC2 …, or a folder of .h5/.aedat4/.aedat/.bag files and
     recording folders) go to one sub-folder each, named after the recording. The output is
     written whole at the end; runs that share frames out (--jobs, torchrun) or may be resumed
-    keep the finished frames in .OUT.trmd-partial beside it meanwhile, so the result is the
-    same file for file as a run in one process."""
-    from ..batch import frame_folder_name, ranks_from_env, recordings_in, run_meta, staged
+    keep the finished frames in .OUT.trmd-partial beside it meanwhile. With the same --threads
+    the result is the same file for file as a run in one process (on other thread counts the
+    trmd and fused methods' network may round a few pixels to the next grey level)."""
+    from ..batch import (
+        choose_jobs,
+        count_work,
+        frame_folder_name,
+        ranks_from_env,
+        recordings_in,
+        run_meta,
+        staged,
+    )
     from ..deblur import ContrastNotes, binned_note, deblur_frames, settle_recording
     from ..errors import InputError
     from ..methods import make_method
@@ -183,9 +196,7 @@ def deblur(
     from ..write import atomic_dir, check_output, write_json, write_result_folder
 
     # every option is checked before any file is opened or written
-    if jobs < 1:
-        raise InputError(f"--jobs must be at least 1, got {jobs}",
-                         hint="e.g. --jobs 4 (one worker process per core)")
+    requested_jobs = parse_jobs(jobs)
     recordings = recordings_in(inputs)
     if len(inputs) > 2 and recordings is None:
         raise InputError(f"deblur takes one or two inputs, got {len(inputs)}",
@@ -202,6 +213,8 @@ def deblur(
                          hint=f"use -o FOLDER --video {output.name}, or `trmd hfr -o "
                          f"{output.name}`")
     ranks = ranks_from_env()
+    jobs = choose_jobs(requested_jobs, config, lambda: count_work(
+        inputs, recordings, opts, exposure, offset), ranks=ranks, in_order=video is not None)
     if staged(jobs, resume, ranks, recordings):
         from ..batch import Settings, make_plan, run_staged
 

@@ -55,13 +55,16 @@ from .options import (
     TimeUnit,
     Topics,
     parse_duration_us,
+    parse_jobs,
     read_options,
 )
 
-Jobs = Annotated[int, typer.Option(
+Jobs = Annotated[str, typer.Option(
     "--jobs", "-j", help="Worker processes on this machine: the exposures are shared out among "
     "them, then the gaps between exposures (torch threads per worker: the cores shared out, "
-    "unless --threads). Across machines, launch the command with torchrun instead: each rank "
+    "unless --threads). auto (the default): for the motion and fused methods one per core, "
+    "each with at least the work of four 346x260 exposures, at most 8, and 1.5 GB of free "
+    "memory each; else one. Across machines, launch the command with torchrun instead: each rank "
     "takes exposures rank, rank + world, …, then the gaps alike; rank 0 writes the output once "
     "every rank is done.")]
 Resume = Annotated[bool, typer.Option(
@@ -111,7 +114,7 @@ def hfr(
     stamp: Stamp = None,
     topics: Topics = None,
     overwrite: Overwrite = False,
-    jobs: Jobs = 1,
+    jobs: Jobs = "auto",
     resume: Resume = False,
     fmt: Format = None,
 ) -> None:
@@ -120,9 +123,10 @@ def hfr(
     Several recordings (REC1 REC2 …, or a folder of .h5/.aedat4/.aedat/.bag files and recording
     folders) give one output each in the -o folder, named after the recording. Runs that share
     the work out (--jobs, torchrun) or may be resumed keep the finished exposures and gaps in
-    .OUT.trmd-partial beside -o meanwhile; the output equals a run in one process file for
-    file."""
-    from ..batch import ranks_from_env, recordings_in, staged
+    .OUT.trmd-partial beside -o meanwhile; with the same --threads the output equals a run in
+    one process file for file (on other thread counts the trmd and fused methods' network may
+    round a few pixels to the next grey level)."""
+    from ..batch import choose_jobs, count_work, ranks_from_env, recordings_in, staged
     from ..deblur import ContrastNotes, binned_note, deblur_frames, settle_recording
     from ..errors import InputError
     from ..hfr import check_time_order, hfr_stream, timestamp_row
@@ -141,9 +145,7 @@ def hfr(
     )
 
     # every option is checked before any file is opened or written
-    if jobs < 1:
-        raise InputError(f"--jobs must be at least 1, got {jobs}",
-                         hint="e.g. --jobs 4 (one worker process per core)")
+    requested_jobs = parse_jobs(jobs)
     kind = None if fmt is None else fmt.lower()
     if kind is not None and kind not in OUTPUT_KINDS:
         raise InputError(f"--format {fmt!r} is not one of {', '.join(OUTPUT_KINDS)}",
@@ -171,6 +173,8 @@ def hfr(
         raise InputError(f"unknown output type {output.suffix!r}", path=output,
                          hint="use .mp4, .gif, or a folder")
     ranks = ranks_from_env()
+    jobs = choose_jobs(requested_jobs, config, lambda: count_work(
+        inputs, recordings, opts, exposure, offset), ranks=ranks)
     if staged(jobs, resume, ranks, recordings):
         from ..batch import run_staged
         from ..hfr import CAPPED_NOTE

@@ -64,6 +64,20 @@ def parse_sensor(text: str | None) -> tuple[int, int] | None:
     return int(m[1]), int(m[2])
 
 
+def parse_jobs(text: str) -> int | None:
+    """``--jobs``: ``"auto"`` → None (the run chooses); a whole number ≥ 1 → that number."""
+    if text.strip().lower() == "auto":
+        return None
+    if not re.fullmatch(r"\s*[-+]?\d+\s*", text):
+        raise InputError(f"--jobs must be a whole number or auto, got {text!r}",
+                         hint="e.g. --jobs 4 (one worker process per core), or --jobs auto")
+    jobs = int(text)
+    if jobs < 1:
+        raise InputError(f"--jobs must be at least 1, got {jobs}",
+                         hint="e.g. --jobs 4 (one worker process per core)")
+    return jobs
+
+
 def parse_duration_us(text: str) -> int:
     """``"-40ms"``, ``"1.5s"``, ``"250us"`` → integer µs. A bare number is µs."""
     m = re.fullmatch(r"\s*([-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)\s*(s|ms|us|µs|ns)?\s*", text)
