@@ -115,6 +115,17 @@ def test_beside_runs_on_another_thread_only_with_two_threads(torch_threads):
             beside(fails).result()
 
 
+def test_beside_lanes_do_not_wait_for_each_other(torch_threads):
+    """A job in one lane runs while another lane's job waits for it (in one lane this would
+    wait forever: the second job queued behind the first)."""
+    torch_threads(2)
+    started = threading.Event()
+    first = beside(lambda: started.wait(10.0), lane="test-a")
+    second = beside(started.set, lane="test-b")
+    assert first.result() is True
+    second.result()
+
+
 def test_blur_matrix_in_bands_is_the_one_band_matrix(torch_threads):
     w, h = 90, 70
     motion = GlobalMotion((9.0, -5.0), (6.0, 4.0), 0.03, -0.01, ((w - 1) / 2, (h - 1) / 2))

@@ -28,7 +28,7 @@ __all__ = ["RowBlocks", "product_threads", "usable_cores", "run_split", "map_sha
 MIN_SPLIT_NNZ = 200_000
 
 _POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
-_SIDE: dict[int, ThreadPoolExecutor] = {}
+_SIDE: dict[tuple[int, str], ThreadPoolExecutor] = {}
 
 
 def product_threads() -> int:
@@ -101,16 +101,18 @@ class _Done:
         return self._value
 
 
-def beside(fn, *args):
+def beside(fn, *args, lane: str = "side"):
     """``fn(*args)`` on a thread of its own while the caller goes on, when this process has two
     threads or more (:func:`product_threads`); else called now. Returns an object whose
-    ``result()`` gives its value or raises its error."""
+    ``result()`` gives its value or raises its error. Calls in one ``lane`` run one after the
+    other on its thread; another lane (e.g. a network's frames, while the caller's own work
+    puts smaller jobs beside it) has a thread of its own."""
     if product_threads() < 2:
         return _Done(fn, args)
-    pid = os.getpid()
-    if pid not in _SIDE:
-        _SIDE[pid] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="trmd-beside")
-    return _SIDE[pid].submit(fn, *args)
+    key = (os.getpid(), lane)
+    if key not in _SIDE:
+        _SIDE[key] = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"trmd-beside-{lane}")
+    return _SIDE[key].submit(fn, *args)
 
 
 class RowBlocks:
