@@ -673,9 +673,9 @@ def choose_jobs(requested: int | None, config: MethodConfig, count: Callable[[],
                 ranks: Ranks, in_order: bool = False) -> int:
     """The worker processes of a run: ``requested`` when given (``--jobs K``), else
     :func:`auto_jobs` for the run's ``count()`` (frames × pixels, :func:`count_work`; called
-    only when it matters). One
-    under torchrun (the ranks are the processes), when the outputs must be made in order in
-    one process (``in_order``: a video), or when the method's network runs on a GPU."""
+    only when it matters). One under torchrun (the ranks are the processes), when the outputs
+    must be made in order in one process (``in_order``: a video), or when the method's network
+    runs on a GPU."""
     if requested is not None:
         return requested
     if ranks.enabled or in_order or config.method not in AUTO_METHODS:
@@ -691,8 +691,9 @@ def choose_jobs(requested: int | None, config: MethodConfig, count: Callable[[],
 def count_work(inputs: Sequence[Path], recordings: Sequence[Path] | None,
                read: ReadOptions, exposure=None, offset_us: int = 0) -> int:
     """Frames × pixels per frame of a run's inputs (every recording of ``recordings``, or
-    ``inputs``); 0 for a blurry image and its events (one frame: nothing to share out), the
-    files unopened."""
+    ``inputs``) that the motion methods work on: 0 for a blurry image and its events (one
+    frame: nothing to share out; the files unopened) and for binned events (no event times:
+    those methods give TRMD's or EDI's frames, which cost less than a worker's start)."""
     from .read.frames import IMAGE_EXTENSIONS
     from .read.inputs import open_inputs
 
@@ -702,7 +703,8 @@ def count_work(inputs: Sequence[Path], recordings: Sequence[Path] | None,
     total = 0
     for group in ([[p] for p in recordings] if recordings is not None else [list(inputs)]):
         with open_inputs(group, read, exposure=exposure, offset_us=offset_us) as ins:
-            total += len(ins.source) * ins.source.width * ins.source.height
+            if not ins.binned:
+                total += len(ins.source) * ins.source.width * ins.source.height
     return total
 
 

@@ -99,6 +99,21 @@ def test_count_work(tmp_path):
     assert count_work([image, events], None, ReadOptions()) == 0
 
 
+def test_binned_events_count_no_work(tmp_path):
+    """Binned events have no event times: the motion methods give TRMD's or EDI's frames
+    there, cheaper than a worker's start."""
+    import numpy as np
+
+    from tests.helpers.bins import write_bins
+    from trmd_cli.write import write_image
+
+    (tmp_path / "blurry").mkdir()
+    for k in range(10):
+        write_image(tmp_path / "blurry" / f"{k:04d}.png", np.full((24, 32), 0.5, np.float32))
+    bins = write_bins(tmp_path / "event_bins.npz", np.ones((10, 6, 24, 32), np.int32))
+    assert count_work([tmp_path / "blurry", bins], None, ReadOptions()) == 0
+
+
 def test_warnings_in_frame_order_whichever_worker_made_them():
     first = ShareReport(2, (((0, 0), "frame 0: a"), ((0, 2), "frame 2: c")))
     second = ShareReport(1, (((0, 1), "frame 1: b"), ((0, 1), "frame 1: b2")))
