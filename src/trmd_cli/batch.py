@@ -71,6 +71,10 @@ Unit = tuple
 RECORDING_SUFFIXES = (".h5", ".hdf5", ".hdf", ".aedat4", ".aedat", ".bag")
 
 
+class PoolUnavailable(Exception):
+    """Worker processes cannot be started here (the reason); nothing was made yet."""
+
+
 class ShardError(TrmdError):
     """A problem met by another process of the run (a worker, another rank), as its line."""
 
@@ -872,16 +876,16 @@ def run_pool(plan: Plan, stage: Stage, units: Sequence[Unit], jobs: int,
     import queue as queues
 
     phases = [list(units)] if phases is None else [list(p) for p in phases]
-    ctx = mp.get_context("spawn")
-    messages = ctx.Queue()
     plan = replace(plan, settings=replace(plan.settings, config=replace(
         plan.settings.config, threads=threads)))
     shares = [[phase[w::jobs] for phase in phases] for w in range(jobs)]
     shares = [s for s in shares if any(s)]
-    barrier = ctx.Barrier(len(shares)) if len(phases) > 1 and shares else None
-    procs = []
+    procs: list = []
     saved = {k: os.environ.get(k) for k in _THREAD_VARS}
     try:
+        ctx = mp.get_context("spawn")
+        messages = ctx.Queue()
+        barrier = ctx.Barrier(len(shares)) if len(phases) > 1 and shares else None
         # the children copy this environment when they start
         os.environ.update({k: str(threads) for k in _THREAD_VARS if saved[k] is None})
         for share in shares:
@@ -889,6 +893,12 @@ def run_pool(plan: Plan, stage: Stage, units: Sequence[Unit], jobs: int,
                                                   messages, barrier), daemon=True)
             p.start()
             procs.append(p)
+    except OSError as e:
+        # no semaphores or no processes here (a sandbox without /dev/shm, a process limit)
+        for p in procs:
+            p.terminate()
+            p.join()
+        raise PoolUnavailable(str(e) or type(e).__name__) from None
     finally:
         for k, v in saved.items():
             if v is None:
@@ -949,9 +959,16 @@ def run_plan(plan: Plan, stage: Stage, ranks: Ranks, work: Sequence[Sequence[Uni
     if ranks.enabled:
         return [agreed(ranks, lambda share=share: plan.run(stage, share, tick))
                 for share in work]
+    said: list[ShareReport] = []
     if jobs > 1 and sum(len(phase) for phase in work) > 1:
-        return run_pool(plan, stage, [], jobs, threads, tick, phases=work)
-    return [plan.run(stage, share, tick) for share in work]
+        try:
+            return run_pool(plan, stage, [], jobs, threads, tick, phases=work)
+        except PoolUnavailable as e:
+            # before any unit was made: the same units, here (told first: key before all)
+            said.append(ShareReport(warnings=(((-1, -1), f"could not start {jobs} worker "
+                                               f"processes ({e}): the work was done in this "
+                                               "one"),)))
+    return said + [plan.run(stage, share, tick) for share in work]
 
 
 # --------------------------------------------------------------------------------------------

@@ -148,3 +148,27 @@ def test_default_run_takes_workers_and_equals_one_process(tmp_path, monkeypatch,
     assert pools == [2]
     assert_same(one, auto)
     no_stage(auto)
+
+
+def test_no_worker_processes_here_runs_in_this_one(tmp_path, monkeypatch):
+    """Where processes cannot be started (no semaphores: a sandbox without /dev/shm), the run
+    says so in one warning and makes every frame in this process: the same files."""
+    import multiprocessing
+
+    rec = write_recording(tmp_path / "a.h5", 4)
+
+    class NoSemaphores:
+        def Queue(self):  # noqa: N802 - multiprocessing's name
+            raise OSError(38, "Function not implemented")
+
+    monkeypatch.setattr(multiprocessing, "get_context", lambda method=None: NoSemaphores())
+    common = ["--method", "motion", "--contrast", "0.2", "--threads", "1"]
+    one, two = tmp_path / "one", tmp_path / "two"
+    r = runner.invoke(app, ["deblur", str(rec), "-o", str(one), *common, "--jobs", "1"])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["deblur", str(rec), "-o", str(two), *common, "--jobs", "2"])
+    assert r.exit_code == 0, r.output
+    assert "could not start 2 worker processes ([Errno 38] Function not implemented): the " \
+        "work was done in this one" in r.output
+    assert_same(one, two)
+    no_stage(two)
