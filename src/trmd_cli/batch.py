@@ -684,7 +684,9 @@ def choose_jobs(requested: int | None, config: MethodConfig, count: Callable[[],
         return requested
     if ranks.enabled or in_order or config.method not in AUTO_METHODS:
         return 1
-    if config.method != "motion" and config.device != "cpu":
+    from .methods import REGISTRY
+
+    if REGISTRY[config.method].needs.weights and config.device != "cpu":
         from .models.weights import resolve_device
 
         if resolve_device(config.device).type != "cpu":
@@ -895,9 +897,7 @@ def run_pool(plan: Plan, stage: Stage, units: Sequence[Unit], jobs: int,
             procs.append(p)
     except OSError as e:
         # no semaphores or no processes here (a sandbox without /dev/shm, a process limit)
-        for p in procs:
-            p.terminate()
-            p.join()
+        _stop(procs)
         raise PoolUnavailable(str(e) or type(e).__name__) from None
     finally:
         for k, v in saved.items():
@@ -921,19 +921,24 @@ def run_pool(plan: Plan, stage: Stage, units: Sequence[Unit], jobs: int,
             else:
                 raise ShardError(msg[1], msg[2])
     finally:
-        from .signals import deferred
-
-        # a second signal (a terminal's Ctrl-C reaches the group, `timeout` signals this
-        # process and then its group) is held until the workers are gone: raised in the join,
-        # it would leave them to multiprocessing's exit handler, whose second SIGTERM lands in
-        # their cleanup
-        with deferred():
-            for p in procs:
-                if p.is_alive():
-                    p.terminate()  # SIGTERM: its writers clean up their temporaries
-            for p in procs:
-                p.join()
+        _stop(procs)
     return reports
+
+
+def _stop(procs: Sequence) -> None:
+    """Stop the worker processes still running (SIGTERM: their writers clean up their
+    temporaries) and wait for every one."""
+    from .signals import deferred
+
+    # a second signal (a terminal's Ctrl-C reaches the group, `timeout` signals this process
+    # and then its group) is held until the workers are gone: raised in the join, it would
+    # leave them to multiprocessing's exit handler, whose second SIGTERM lands in their cleanup
+    with deferred():
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+        for p in procs:
+            p.join()
 
 
 def todo(plan: Plan, stage: Stage, ranks: Ranks) -> list[list[Unit]]:
