@@ -9,7 +9,7 @@ Each run is the whole command (reading, deblurring, writing PNGs, starting the w
 trmd HDF5 recording made here (a checkerboard under random events: nothing for the motion
 methods to find), or on ``--inputs`` (what `trmd deblur` takes), so the figures include the
 fixed cost of spawning K processes. With K > 1 each worker gets cores // K threads. With
-``--repeat`` the K values take turns, round after round (the machine's speed drifts), and the
+``--repeat`` the K values take turns, pass after pass (the machine's speed drifts), and the
 median is printed. No target: the gain depends on the cores the machine leaves free.
 """
 
