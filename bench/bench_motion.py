@@ -1,7 +1,7 @@
 """Time and quality of `--method motion` and `--method fused` on 346×260 simulated frames
 (fixed seed).
 
-    python bench/bench_motion.py [FRAMES] [REPEATS]
+    python bench/bench_motion.py [FRAMES] [REPEATS] [--no-helper]
 
 Per frame: motion estimation (contrast maximisation), deconvolution (from and anchored to
 EDI's middle frame, as the method runs it), the whole method (EDI's contrast and frames, motion,
@@ -10,7 +10,8 @@ the shipped weights; skipped when none ship); each the fastest of REPEATS runs (
 machine is shared). PSNR of the middle frame against the ground truth for the blurry frame, EDI
 at the true c, motion and fused at the true c, and the motion estimate's mean end-point error
 against the simulator's camera path (pixels). The C heap is tuned as `trmd` tunes it
-(:mod:`trmd_cli.heap`).
+(:mod:`trmd_cli.heap`). ``--no-helper``: the motion method without its helper process
+(:mod:`trmd_cli.helper_process`; the same frames), to time one against the other.
 """
 
 from __future__ import annotations
@@ -84,4 +85,8 @@ def main(frames: int = 3, repeats: int = 3) -> None:
 
 
 if __name__ == "__main__":
-    main(*(int(v) for v in sys.argv[1:3]))
+    if "--no-helper" in sys.argv:
+        from trmd_cli.helper_process import allow
+
+        allow(False)
+    main(*(int(v) for v in sys.argv[1:] if not v.startswith("--")))

@@ -172,9 +172,16 @@ def test_map_shared_keeps_the_items_order(torch_threads):
 
 
 def test_thread_count_does_not_load_torch():
-    # a process reading events only is not made to import torch (a second) for the count
+    # a process reading events only is not made to import torch (a second) for the count:
+    # it counts its cores, or takes OMP_NUM_THREADS (a --jobs worker's) as torch would
+    import os
+
     code = ("import sys, os; from trmd_cli import threads; n = threads.product_threads(); "
             "assert 'torch' not in sys.modules; "
-            "assert n == max(1, min(len(os.sched_getaffinity(0)), 4)), n; "
+            "assert n == max(1, min(int(sys.argv[1]), 4)), n; "
             "import torch; torch.set_num_threads(1); assert threads.product_threads() == 1")
-    subprocess.run([sys.executable, "-c", code], check=True)
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    cores = len(os.sched_getaffinity(0))
+    subprocess.run([sys.executable, "-c", code, str(cores)], check=True, env=env)
+    subprocess.run([sys.executable, "-c", code, "3"], check=True,
+                   env={**env, "OMP_NUM_THREADS": "3"})

@@ -806,9 +806,29 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
 
     The prior's weight follows B's measured noise (:meth:`DeconvConfig.for_noise`).
     """
+    from .motion.tiles import TileEvidence
+
+    # the tiles' votes and the background's motion do not depend on the global estimate:
+    # begun in the helper process (when one is ready) while this one makes that estimate
+    tiles = TileEvidence(events, exposure, hot_mask) \
+        if motion is None and contrast is not None else None
+    try:
+        return _motion_deblur(blurry, events, exposure, fractions, edi_frames, edi_middle,
+                              hot_mask, config, motion, contrast, edi_at, tiles)
+    finally:
+        if tiles is not None:
+            tiles.drop()
+
+
+def _motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: np.ndarray,
+                   edi_middle: np.ndarray, hot_mask: np.ndarray | None,
+                   config: DeconvConfig | None, motion, contrast: float | None, edi_at,
+                   tiles) -> MotionDeblur:
+    """:func:`motion_deblur`, with ``tiles`` (a :class:`~trmd_cli.motion.tiles.TileEvidence`)
+    where the motion is estimated and c is known."""
     from .motion import MIN_EVENTS, estimate_motion
     from .motion.cmax import window_points
-    from .motion.tiles import disputed_tiles, outvoted_tiles, tile_velocities
+    from .motion.tiles import disputed_tiles, outvoted_tiles
 
     given = motion is not None
     if motion is None:
@@ -824,7 +844,6 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
     cfg = cfg.for_noise(noise_level(blurry))
 
     fitted = None
-    votes = None
     tried = False  # the background's deconvolution was tried and fell back to EDI
 
     def second_chance(reason: str, solved: Deconvolved | None = None) -> MotionDeblur:
@@ -834,13 +853,13 @@ def motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: n
             return fallback
         return _background_deblur(blurry, events, exposure, fractions, edi_frames, edi_middle,
                                   hot_mask, cfg, contrast, fallback,
-                                  motion if given else None, solved, votes)
+                                  motion if given else None, solved, tiles)
 
     points = window_points(events, exposure, hot_mask)
-    if not given and contrast is not None:
+    if tiles is not None:
         # tiles that something else moves (:func:`~trmd_cli.motion.tiles.disputed_tiles`)
         # send the frame to the background's motion first, with the events' change test
-        votes = tile_velocities(events, exposure, hot_mask)
+        votes = tiles.votes()
         disputed = disputed_tiles(votes, motion, points, w, h)
         if disputed and outvoted_tiles(votes, w, h) is not None:
             res = second_chance(f"{len(disputed)} of {len(votes)} tiles move otherwise than "
@@ -907,15 +926,15 @@ def _background_deblur(blurry: np.ndarray, events, exposure, fractions, edi_fram
                        edi_middle: np.ndarray, hot_mask: np.ndarray | None,
                        cfg: DeconvConfig, contrast: float | None, fallback: MotionDeblur,
                        given=None, solved: Deconvolved | None = None,
-                       votes: dict | None = None) -> MotionDeblur:
+                       tiles=None) -> MotionDeblur:
     """When one global motion does not hold: the deconvolution along the background's motion
     (``given``, deconvolved already when ``solved``; else estimated apart from the tiles that
     move otherwise, :func:`~trmd_cli.motion.tiles.background_motion`), kept where that motion
     predicts the events' change of log intensity (:func:`change_agreement`) and re-blurring
     explains B (:func:`explained`); EDI elsewhere, at every instant. ``fallback`` (EDI's
     frames) when there is no such motion, no c to read the events with, or it holds on less
-    than :data:`BACKGROUND_SHARE` of the frame. ``votes``: the tiles' velocities
-    (:func:`~trmd_cli.motion.tiles.tile_velocities`) when measured already.
+    than :data:`BACKGROUND_SHARE` of the frame. ``tiles``: the exposure's
+    :class:`~trmd_cli.motion.tiles.TileEvidence`, whose background motion is the one used.
 
     On eight noise-free simulated exposures with a foreground layer moving on its own
     (``bench/bench_mover_guard.py``), the global estimate followed the layer in five; on those
@@ -928,8 +947,8 @@ def _background_deblur(blurry: np.ndarray, events, exposure, fractions, edi_fram
     if contrast is None:
         return fallback
     h, w = blurry.shape[:2]
-    motion = given if given is not None else \
-        background_motion(events, exposure, hot_mask, votes=votes)
+    motion = given if given is not None else tiles.background() if tiles is not None else \
+        background_motion(events, exposure, hot_mask)
     if motion is None or motion.events < MIN_EVENTS or motion.max_displacement_px(w, h) < 0.25:
         return fallback
     d = solved if solved is not None else \

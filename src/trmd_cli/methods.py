@@ -544,6 +544,13 @@ class MotionMethod:
         given = None if self.motion is None else \
             self.motion.with_evidence(events, exposure, prep.hot)
         _, res = motion_frames(b, events, exposure, fr, prep, given)
+        if given is None:
+            # from the second frame on, the tiles' votes are begun in a helper process while
+            # this one estimates the global motion (:mod:`trmd_cli.helper_process`): started
+            # after the first frame, so that a run of one frame does not pay for its start
+            from . import helper_process
+
+            helper_process.start()
         return Estimate(res.frames, inst, prep.contrast, prep.estimated, prep.reliable,
                         prep.hot_pixels, prep.note,
                         tuple(f"{self.note_prefix}{note}" for note in res.notes),
@@ -679,7 +686,15 @@ METHODS = tuple(REGISTRY)
 
 
 def make_method(config: MethodConfig) -> Method:
-    """The method ``config.method`` names (TRMD loads its weights once, here)."""
+    """The method ``config.method`` names (TRMD loads its weights once, here), with
+    ``config.threads`` (when given) as the process's thread count: torch's, which the
+    weight-free methods' products and helper process follow too (:mod:`trmd_cli.threads`)."""
+    if config.threads is not None:
+        import torch
+
+        if config.threads < 1:
+            raise InputError(f"threads must be ≥ 1, got {config.threads}")
+        torch.set_num_threads(config.threads)
     return REGISTRY[config.method].from_config(config)
 
 

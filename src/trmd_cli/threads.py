@@ -36,12 +36,16 @@ def product_threads() -> int:
     this process), at most 4 (a product takes a few milliseconds; finer parts cost their
     hand-offs, and more than two were not measured). A process that has not loaded torch
     (reading events alone) is not made to load it (a second's import): it counts the cores it
-    may run on, which is torch's own default."""
+    may run on, or ``OMP_NUM_THREADS`` where set (a ``--jobs`` worker's): torch's own
+    default."""
     torch = sys.modules.get("torch")
     if torch is not None:
         count = int(torch.get_num_threads())
     else:
-        count = usable_cores()
+        try:
+            count = int(os.environ.get("OMP_NUM_THREADS", ""))
+        except ValueError:
+            count = usable_cores()
     return max(1, min(count, 4))
 
 

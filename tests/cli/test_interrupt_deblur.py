@@ -164,6 +164,28 @@ def test_deblur_interrupted_mid_recording(tmp_path, long_rec, sig, code, word):
     wait_gone(encoder)
 
 
+@pytest.mark.parametrize("sig,code,word", CAUGHT, ids=["ctrl-c", "kill"])
+def test_motion_run_interrupted_leaves_no_helper(tmp_path, long_rec, sig, code, word):
+    """The motion method on two threads starts a helper process after its first frame, in a
+    session of its own (a terminal's Ctrl-C does not reach it): the run stops it as it
+    ends."""
+    out = tmp_path / "out"
+    before = previous_output(out)
+    proc = launch("deblur", str(long_rec), "-o", str(out), "--overwrite", "--method", "motion",
+                  "--jobs", "1", "--threads", "2")
+    wait_until(proc, lambda: frames_done(tmp_path, "out", 3) and children(proc.pid),
+               "three frames were written and the helper started")
+    helper = children(proc.pid)
+    err = stop(proc, sig)
+    assert proc.returncode == code, err
+    # (the frames' warnings first: too few random events for a motion)
+    assert "Traceback" not in err
+    assert err.splitlines()[-1] == f"error: {word}; no partial output was left", err
+    assert snapshot(out) == before
+    assert temps(tmp_path) == []
+    wait_gone(helper)
+
+
 def test_deblur_killed_leaves_temps_that_the_next_run_sweeps(tmp_path, long_rec, short_rec):
     out, video = tmp_path / "out", tmp_path / "latent.mp4"
     before = previous_output(out), previous_output(video)

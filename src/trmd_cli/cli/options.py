@@ -34,8 +34,9 @@ Columns = Annotated[Optional[str], typer.Option(
 OneBased = Annotated[bool, typer.Option("--one-based", help="Coordinates count from 1.")]
 Overwrite = Annotated[bool, typer.Option("--overwrite", help="Replace an existing output.")]
 Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")]
-Threads = Annotated[Optional[int], typer.Option("--threads", min=1,
-                                                help="CPU threads for torch (default: all).")]
+Threads = Annotated[Optional[int], typer.Option(
+    "--threads", min=1,
+    help="CPU threads: torch's, and the motion method's (1: no helper process) (default: all).")]
 ExposureLength = Annotated[Optional[str], typer.Option(
     "--exposure-length", help="Exposure time of every frame, with its unit (20ms, 500us, "
     "0.02s), for ROS bags without exposure messages and RPG folders, whose frames carry one "

@@ -28,7 +28,8 @@ from .cmax import (
 from .model import GlobalMotion
 
 __all__ = ["tile_velocities", "outvoted_tiles", "disputed_tiles", "background_motion",
-           "follows_votes", "AGREE_PX", "DISPUTE_GAIN", "GRID"]
+           "follows_votes", "votes_and_background", "TileEvidence", "AGREE_PX",
+           "DISPUTE_GAIN", "GRID"]
 
 #: tiles across × down
 GRID = (4, 3)
@@ -219,6 +220,57 @@ def background_motion(events: EventStream, exposure: Exposure,
     return motion
 
 
+def votes_and_background(events: EventStream, exposure: Exposure,
+                         hot_mask: np.ndarray | None = None):
+    """Yields :func:`tile_velocities`' votes, then the :func:`background_motion` made from
+    them (a generator: the votes are ready before the longer second estimate)."""
+    votes = tile_velocities(events, exposure, hot_mask)
+    yield votes
+    yield background_motion(events, exposure, hot_mask, votes=votes)
+
+
+class TileEvidence:
+    """One exposure's tile votes and the background's motion from them, neither of which
+    depends on the global estimate: begun in the process's helper
+    (:mod:`trmd_cli.helper_process`) while the caller makes that estimate, when one is ready;
+    else each computed here when first asked for (the background's only if asked for). The
+    same values either way. Call :meth:`drop` when done.
+
+    Args:
+        events, exposure, hot_mask: as :func:`tile_velocities` takes them.
+    """
+
+    def __init__(self, events: EventStream, exposure: Exposure,
+                 hot_mask: np.ndarray | None = None) -> None:
+        from ..helper_process import ahead
+
+        self._args = (events, exposure, hot_mask)
+        self._votes: dict[tuple[int, int], tuple[float, float]] | None = None
+        self._background: tuple[GlobalMotion | None] | None = None
+        # only the exposure's events travel to the helper
+        self._ahead = ahead(votes_and_background, events.within(exposure), exposure, hot_mask)
+
+    def votes(self) -> dict[tuple[int, int], tuple[float, float]]:
+        """:func:`tile_velocities`' votes."""
+        if self._votes is None:
+            ok, votes = self._ahead.take(0)
+            self._votes = votes if ok else tile_velocities(*self._args)
+        return self._votes
+
+    def background(self) -> GlobalMotion | None:
+        """:func:`background_motion` from :meth:`votes`."""
+        if self._background is None:
+            votes = self.votes()
+            ok, motion = self._ahead.take(1)
+            self._background = (motion if ok else
+                                background_motion(*self._args, votes=votes),)
+        return self._background[0]
+
+    def drop(self) -> None:
+        """Nothing more is wanted: the helper's job is cancelled or stopped."""
+        self._ahead.drop()
+
+
 def _majority_velocity(votes: dict[tuple[int, int], tuple[float, float]], outvoted: np.ndarray,
                        width: int, height: int, grid: tuple[int, int] = GRID
                        ) -> tuple[float, float]:
@@ -318,3 +370,4 @@ def _translation_gains(x: np.ndarray, y: np.ndarray, tau: np.ndarray, velocities
     cells = w * h
     mean = flat.sum(axis=1) / cells
     return np.einsum("ij,ij->i", flat, flat) / cells - mean * mean
+
