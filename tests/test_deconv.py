@@ -28,7 +28,7 @@ from trmd_cli.errors import InputError
 from trmd_cli.events import EventStream, Exposure
 from trmd_cli.methods import EdiMethod, MotionMethod
 from trmd_cli.metrics import psnr
-from trmd_cli.motion import GlobalMotion, SampledMotion
+from trmd_cli.motion import GlobalMotion, SampledMotion, estimate_motion
 from trmd_cli.oracle import TruePathMethod
 from trmd_cli.simulate import MotionRanges, SensorConfig, make_sample
 
@@ -448,6 +448,24 @@ def test_exact_motion_is_trusted_without_movers():
         s.blurry, s.events, s.exposure)
     assert psnr(true.frames[3], s.sharp[3]) > psnr(edi.frames[3], s.sharp[3]) + 4
     assert _seq(true.frames, s.sharp) > _seq(edi.frames, s.sharp) + 5
+
+
+def test_small_motion_with_a_low_gain_is_blended_not_dropped():
+    """About 3 px of camera motion: the estimate sharpens its events little (a gain between
+    1.05 and 1.1, where the gain's trust is partial) though it is right to half a pixel. The
+    deconvolution is blended in by that trust, not dropped for explaining "too little" of the
+    frame (measured: EDI 35.46, motion 38.19 dB, along the true path 40.46; before, EDI's)."""
+    motion = MotionRanges(translation_px=7, rotation_deg=0.1, scale=0.002, perspective=0,
+                          curvature=0.2)
+    s = make_sample(texture(300, 400, seed=9), size=(160, 120), rng=np.random.default_rng(9),
+                    motion=motion, sensor=SensorConfig.clean(0.2), read_noise=0.003)
+    est = estimate_motion(s.events, s.exposure)
+    assert 1.05 < est.confidence < 1.1, est.confidence  # the case this test is about
+    edi = EdiMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
+    mot = MotionMethod(contrast=s.contrast)(s.blurry, s.events, s.exposure)
+    assert not mot.notes, mot.notes
+    assert psnr(mot.frames[3], s.sharp[3]) > psnr(edi.frames[3], s.sharp[3]) + 1.5
+    assert _seq(mot.frames, s.sharp) > _seq(edi.frames, s.sharp) + 1.0
 
 
 def test_too_few_events_give_edi_with_a_note():

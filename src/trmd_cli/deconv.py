@@ -650,8 +650,8 @@ def tile_score(tile_gain: np.ndarray, width: int, height: int, tile: int = 16) -
     return np.ascontiguousarray(up[:height, :width])
 
 
-#: least mean guard weight (share of the frame the motion explains) for the deconvolution to
-#: be used at all
+#: least mean guard weight (share of the frame the motion explains; for an estimate, before
+#: the global gain's trust, :func:`trust_score`) for the deconvolution to be used at all
 MIN_SHARE = 0.5
 
 #: the share of the frame (mean guard weight) under which the deconvolution along the global
@@ -883,7 +883,7 @@ def _motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: 
     def hopeless(k: int, data_weight: np.ndarray) -> bool:
         floor = EARLY_SHARE.get(k)
         return floor is not None and float(guard_weights(
-            data_weight, motion.confidence, gains_later.result()).mean()) < floor
+            data_weight, 1.1, gains_later.result()).mean()) < floor
 
     # an estimate that plainly explains too little is let go early, unless its frame is
     # wanted whole: a given path's is reused for the background's deconvolution below, and
@@ -902,7 +902,12 @@ def _motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: 
         if fitted is not None:
             edi_frames = edi_at(fitted)
     wgt = guard_weights(d.data_weight, motion.confidence, gains)
-    share = float(wgt.mean())
+    # an estimate's share counts what it explains; the gain's trust only sets how much of
+    # the deconvolution is used (a small motion's gain is low even when the estimate is right
+    # to a tenth of a pixel, and a partial blend with EDI holds an estimate's error back). A
+    # given path short of the share is judged by the events' change test instead, below.
+    trust = 1.0 if given else trust_score(motion.confidence)
+    share = float(wgt.mean()) / trust if trust > 0 else 0.0
     if share < MIN_SHARE:
         # a motion that explains less than half of B is mostly something else's (movers as
         # large as the background, or both mixed): what it does explain is not to be trusted
