@@ -888,6 +888,8 @@ def _motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: 
     gains_later = beside(tile_gains, motion, *points, w, h)
 
     def hopeless(k: int, data_weight: np.ndarray) -> bool:
+        # the share as the verdict below counts it: before the global gain's trust (a gain
+        # of 1.1 is full trust)
         floor = EARLY_SHARE.get(k)
         return floor is not None and float(guard_weights(
             data_weight, 1.1, gains_later.result()).mean()) < floor
