@@ -185,3 +185,16 @@ def test_thread_count_does_not_load_torch():
     subprocess.run([sys.executable, "-c", code, str(cores)], check=True, env=env)
     subprocess.run([sys.executable, "-c", code, "3"], check=True,
                    env={**env, "OMP_NUM_THREADS": "3"})
+
+
+def test_threads_for_edi_do_not_load_torch():
+    # `--threads` on a method without weights: its count is taken without importing torch,
+    # and torch, imported later, starts with it
+    import os
+
+    code = ("import sys; from trmd_cli.methods import MethodConfig, make_method; "
+            "from trmd_cli import threads; make_method(MethodConfig(method='edi', threads=1)); "
+            "assert 'torch' not in sys.modules; assert threads.product_threads() == 1; "
+            "import torch; assert torch.get_num_threads() == 1")
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env)

@@ -690,11 +690,9 @@ def make_method(config: MethodConfig) -> Method:
     ``config.threads`` (when given) as the process's thread count: torch's, which the
     weight-free methods' products and helper process follow too (:mod:`trmd_cli.threads`)."""
     if config.threads is not None:
-        import torch
+        from .threads import set_threads
 
-        if config.threads < 1:
-            raise InputError(f"threads must be ≥ 1, got {config.threads}")
-        torch.set_num_threads(config.threads)
+        set_threads(config.threads)
     return REGISTRY[config.method].from_config(config)
 
 

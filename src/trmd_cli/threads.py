@@ -21,14 +21,30 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-__all__ = ["RowBlocks", "product_threads", "usable_cores", "run_split", "map_shared",
-           "beside"]
+__all__ = ["RowBlocks", "product_threads", "set_threads", "usable_cores", "run_split",
+           "map_shared", "beside"]
 
 #: fewer stored entries than this: one product, no threads (their hand-off would cost more)
 MIN_SPLIT_NNZ = 200_000
 
 _POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
 _SIDE: dict[tuple[int, str], ThreadPoolExecutor] = {}
+
+
+def set_threads(count: int) -> None:
+    """The process's thread count (``--threads``): torch's when torch is loaded; otherwise
+    ``OMP_NUM_THREADS``, which torch takes as its count when it is imported and
+    :func:`product_threads` reads until then, so a method without weights (EDI) is not made
+    to import torch (a second) to be told its count."""
+    if count < 1:
+        from .errors import InputError
+
+        raise InputError(f"threads must be ≥ 1, got {count}")
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(count)
+    else:
+        os.environ["OMP_NUM_THREADS"] = str(count)
 
 
 def product_threads() -> int:

@@ -370,4 +370,3 @@ def _translation_gains(x: np.ndarray, y: np.ndarray, tau: np.ndarray, velocities
     cells = w * h
     mean = flat.sum(axis=1) / cells
     return np.einsum("ij,ij->i", flat, flat) / cells - mean * mean
-
