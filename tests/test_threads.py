@@ -171,6 +171,14 @@ def test_map_shared_keeps_the_items_order(torch_threads):
     assert threads.map_shared(square, []) == []
 
 
+def _run_without_omp(code: str, *args: str, **extra: str) -> None:
+    """``python -c code args`` in a process whose OMP_NUM_THREADS is ``extra``'s or unset."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    subprocess.run([sys.executable, "-c", code, *args], check=True, env={**env, **extra})
+
+
 def test_thread_count_does_not_load_torch():
     # a process reading events only is not made to import torch (a second) for the count:
     # it counts its cores, or takes OMP_NUM_THREADS (a --jobs worker's) as torch would
@@ -180,21 +188,15 @@ def test_thread_count_does_not_load_torch():
             "assert 'torch' not in sys.modules; "
             "assert n == max(1, min(int(sys.argv[1]), 4)), n; "
             "import torch; torch.set_num_threads(1); assert threads.product_threads() == 1")
-    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
-    cores = len(os.sched_getaffinity(0))
-    subprocess.run([sys.executable, "-c", code, str(cores)], check=True, env=env)
-    subprocess.run([sys.executable, "-c", code, "3"], check=True,
-                   env={**env, "OMP_NUM_THREADS": "3"})
+    _run_without_omp(code, str(len(os.sched_getaffinity(0))))
+    _run_without_omp(code, "3", OMP_NUM_THREADS="3")
 
 
 def test_threads_for_edi_do_not_load_torch():
     # `--threads` on a method without weights: its count is taken without importing torch,
     # and torch, imported later, starts with it
-    import os
-
     code = ("import sys; from trmd_cli.methods import MethodConfig, make_method; "
             "from trmd_cli import threads; make_method(MethodConfig(method='edi', threads=1)); "
             "assert 'torch' not in sys.modules; assert threads.product_threads() == 1; "
             "import torch; assert torch.get_num_threads() == 1")
-    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
-    subprocess.run([sys.executable, "-c", code], check=True, env=env)
+    _run_without_omp(code)
