@@ -271,6 +271,15 @@ def _grid_match(exposure: Exposure, n: int, instants_us) -> tuple[np.ndarray, np
     return grid, inst, nearest, np.isclose(inst, grid[nearest], atol=0.5)
 
 
+def _without_ghosts(frames: np.ndarray, prep: Prepared, n: int) -> np.ndarray:
+    """A network's 2N+1 frames with their ghosts replaced by what the events report
+    (:func:`~trmd_cli.ghosts.without_ghosts`, with ``prep``'s c, hot pixels left out)."""
+    from .ghosts import without_ghosts
+
+    s = prep.model.levels_at(_bin_grid(n))
+    return without_ghosts(frames, (prep.contrast * (s - s[n])).astype(np.float32), n)
+
+
 def _at_instants(frames: np.ndarray, events: EventStream, grid: np.ndarray, inst: np.ndarray,
                  nearest: np.ndarray, contrast: float, hot: np.ndarray | None) -> np.ndarray:
     """The grid's ``frames`` at ``inst``: each propagated from its nearest grid frame by event
@@ -399,8 +408,9 @@ class EdiMethod:
 
 class TrmdMethod:
     """TRMD (RE-Net residuals + reconstruction). Weights that take the threshold c get it given
-    or estimated as EDI's; instants other than the 2N+1 are propagated from the nearest
-    reconstructed frame by event integration (with the same c)."""
+    or estimated as EDI's; where c is settled, the frames' ghosts are replaced by what the
+    events report (:mod:`trmd_cli.ghosts`); instants other than the 2N+1 are propagated from
+    the nearest reconstructed frame by event integration (with the same c)."""
 
     name = "trmd"
     #: known before the weights are read; an instance's ``needs`` also says what they take
@@ -447,6 +457,7 @@ class TrmdMethod:
         frames = self.grid_frames(b, events, exposure, prep)
         if prep is None:
             return Estimate(frames[nearest], inst, None)
+        frames = _without_ghosts(frames, prep, self.n)
         if exact.all():
             return Estimate(frames[nearest], inst, c, prep.estimated, prep.reliable,
                             prep.hot_pixels, prep.note)
@@ -493,6 +504,7 @@ class TrmdMethod:
         frames = self.model(b, scer_from_bins(counts), c)
         if prep is None:
             return Estimate(frames, grid, None)
+        frames = _without_ghosts(frames, prep, self.n)
         return Estimate(frames, grid, c, prep.estimated, prep.reliable,
                         contrast_note=prep.note)
 

@@ -251,7 +251,9 @@ def test_pipeline_hands_the_levels_to_a_timing_network(tmp_path):
     s = make_sample(image, size=(48, 40), rng=rng)
     weights = save_weights(tmp_path / "w.safetensors", _trained_like(timing=True), half=False)
     method = TrmdMethod(3, weights, device="cpu", contrast=0.25)
-    got = method(s.blurry, s.events, s.exposure).frames
+    # the network's frames, before their ghosts are checked against the events
+    got = method.grid_frames(s.blurry, s.events, s.exposure,
+                             method.prepare(s.blurry, s.events, s.exposure))
     est = method.model
     vox = scer_voxels(s.events, s.exposure, 3)
     want = est(s.blurry, vox, 0.25, scer_levels(s.events, s.exposure, 3))
