@@ -25,7 +25,7 @@ import numpy as np
 
 from trmd_cli.deconv import deconvolve
 from trmd_cli.edi import hot_pixel_mask
-from trmd_cli.heap import keep_freed_memory
+from trmd_cli.heap import tune_memory
 from trmd_cli.methods import EdiMethod, FusedMethod, MethodConfig, MotionMethod, unavailable
 from trmd_cli.metrics import psnr
 from trmd_cli.motion import SampledMotion, estimate_motion
@@ -46,7 +46,7 @@ def _fastest(fn, repeats: int):
 
 
 def main(frames: int = 3, repeats: int = 3) -> None:
-    keep_freed_memory()  # as `trmd` does when it starts: temporaries reuse the heap's pages
+    tune_memory()  # as `trmd` does when it starts: temporaries reuse the heap's pages
     img = to_gray(read_image(SOURCE))
     motion = MotionRanges(translation_px=20, rotation_deg=1, scale=0.02, perspective=0,
                           curvature=0.3)

@@ -48,7 +48,7 @@ from trmd_cli.deconv import (  # noqa: E402
     noise_level,
     predicted_change,
 )
-from trmd_cli.heap import keep_freed_memory  # noqa: E402
+from trmd_cli.heap import tune_memory  # noqa: E402
 from trmd_cli.methods import EdiMethod, MotionMethod  # noqa: E402
 from trmd_cli.metrics import psnr  # noqa: E402
 from trmd_cli.motion import estimate_motion  # noqa: E402
@@ -84,7 +84,7 @@ def main(samples: int = 8) -> None:
     names = ["EDI (true c)", "motion", "motion-true-path", "background, signed test",
              "background, RMS test", "true path, RMS test"]
     rows, seconds = [], []
-    keep_freed_memory()  # as `trmd` does when it starts: temporaries reuse the heap's pages
+    tune_memory()  # as `trmd` does when it starts: temporaries reuse the heap's pages
     for k, path in enumerate(sorted(IMAGES.rglob("kodim*.png"))[:samples]):
         blurry, gt, ev, ex, camera, _, _ = simulate(to_gray(read_image(path)), 400 + k)
         if k == 0:

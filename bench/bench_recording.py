@@ -15,8 +15,9 @@ given beside each wall time. OpenMP threads wait passively, as `trmd` sets them.
 (imports, loading the weights) is reported apart.
 
 ``--contrast C`` gives the threshold (no estimate): what the rest of the run costs.
-``--heap-defaults``: the C heap as glibc sets it up, not as `trmd` tunes it
-(:mod:`trmd_cli.heap`).
+``--heap-defaults``: the process's memory as glibc and numpy set it up, not as `trmd` tunes
+it (:mod:`trmd_cli.heap`; ``NUMPY_MADVISE_HUGEPAGE=1`` in the environment keeps numpy's
+huge-page advice alone).
 
 ``--profile`` adds one pass without the overlap, each stage timed on its own (median over the
 frames, ms of wall time, and in brackets of the thread's CPU time, which other work on the
@@ -148,7 +149,9 @@ def main() -> None:
     ap.add_argument("--contrast", type=float, default=None,
                     help="a given threshold c: no estimate (what the rest of the run costs)")
     ap.add_argument("--heap-defaults", action="store_true",
-                    help="leave the C heap's thresholds at glibc's defaults (trmd raises them)")
+                    help="leave the process's memory settings at glibc's and numpy's defaults "
+                         "(trmd raises the heap's thresholds, and turns numpy's huge-page "
+                         "advice off where the kernel would stall on it)")
     ap.add_argument("--contrast-scope", default="recording", choices=["recording", "frame"],
                     help="one threshold for the recording (trmd's default) or one per frame")
     args = ap.parse_args()
@@ -156,9 +159,9 @@ def main() -> None:
     t0 = time.perf_counter()
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as `trmd` sets it before torch loads
     if not args.heap_defaults:
-        from trmd_cli.heap import keep_freed_memory
+        from trmd_cli.heap import tune_memory
 
-        keep_freed_memory()  # as `trmd` does when it starts
+        tune_memory()  # as `trmd` does when it starts
     import torch
 
     from trmd_cli.deblur import deblur_frames, settle_recording

@@ -1,4 +1,5 @@
-"""The C heap keeps a frame's temporaries (glibc only)."""
+"""The C heap keeps a frame's temporaries (glibc only); numpy's huge-page advice is off where
+the kernel would stall on it."""
 
 from __future__ import annotations
 
@@ -49,8 +50,62 @@ def test_the_command_line_sets_it_before_any_command(monkeypatch):
     from trmd_cli.cli import app
 
     calls = []
-    monkeypatch.setattr(heap, "keep_freed_memory", lambda: calls.append(1) or True)
+    monkeypatch.setattr(heap, "tune_memory", lambda: calls.append(1) or (True, True))
     monkeypatch.setattr(sys, "argv", ["trmd", "--version"])
     with pytest.raises(SystemExit):
         app.main()
     assert calls == [1]
+
+
+# numpy's advice as a process sees it after ``huge_pages_without_stalls`` with the kernel's
+# setting read from argv[1], and as a process it starts sees it
+_ADVICE = """
+import os, subprocess, sys
+import numpy
+from numpy._core.multiarray import _set_madvise_hugepage
+from trmd_cli.heap import huge_pages_without_stalls
+done = huge_pages_without_stalls(sys.argv[1])
+was = _set_madvise_hugepage(True)  # returns the setting it replaces
+child = subprocess.run([sys.executable, "-c", "import numpy; from numpy._core.multiarray "
+                        "import _set_madvise_hugepage as s; print(s(True))"],
+                       capture_output=True, text=True, check=True).stdout.strip()
+print(done, was, child, os.environ.get("NUMPY_MADVISE_HUGEPAGE"))
+"""
+
+
+@pytest.mark.parametrize(("setting", "want"), [
+    ("always defer defer+madvise [madvise] never", ["True", "False", "False", "0"]),
+    ("[always] defer defer+madvise madvise never", ["True", "False", "False", "0"]),
+    ("always defer [defer+madvise] madvise never", ["True", "False", "False", "0"]),
+    # the kernel does not wait for compaction: numpy's advice stays
+    ("always [defer] defer+madvise madvise never", ["False", "default", "default", "None"]),
+    ("always defer defer+madvise madvise [never]", ["False", "default", "default", "None"]),
+])
+def test_huge_page_advice_off_where_the_kernel_would_stall(tmp_path, setting, want):
+    pytest.importorskip("numpy._core.multiarray")
+    defrag = tmp_path / "defrag"
+    defrag.write_text(setting + "\n")
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    out = subprocess.run([sys.executable, "-c", _ADVICE, str(defrag)], capture_output=True,
+                         text=True, env=env, check=True)
+    assert out.stdout.split() == [_default(env) if w == "default" else w for w in want]
+
+
+def _default(env: dict) -> str:
+    """numpy's own advice in a process left alone (on on Linux 4.6 and later)."""
+    return subprocess.run([sys.executable, "-c", "import numpy; from numpy._core.multiarray "
+                           "import _set_madvise_hugepage as s; print(s(True))"],
+                          capture_output=True, text=True, env=env, check=True).stdout.strip()
+
+
+def test_huge_page_advice_left_to_the_user_and_to_unreadable_settings(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    missing = subprocess.run([sys.executable, "-c", _ADVICE, str(tmp_path / "none")],
+                             capture_output=True, text=True, env=env, check=True)
+    default = _default(env)
+    assert missing.stdout.split() == ["False", default, default, "None"]
+    defrag = tmp_path / "defrag"
+    defrag.write_text("always defer defer+madvise [madvise] never\n")
+    users = subprocess.run([sys.executable, "-c", _ADVICE, str(defrag)], capture_output=True,
+                           text=True, env={**env, "NUMPY_MADVISE_HUGEPAGE": "1"}, check=True)
+    assert users.stdout.split() == ["False", "True", "True", "1"]  # the user's 1: on

@@ -837,10 +837,10 @@ def _worker(plan: Plan, output: str, shares: list[list[Unit]], threads: int, que
     code); a ("tick",) after every unit."""
     import signal
 
-    from .heap import keep_freed_memory
+    from .heap import tune_memory
     from .signals import handled
 
-    keep_freed_memory()  # as the command that started it (a spawned process starts afresh)
+    tune_memory()  # as the command that started it (a spawned process starts afresh)
     try:
         with handled():
             # Ctrl-C reaches the whole terminal's process group: the parent alone answers it

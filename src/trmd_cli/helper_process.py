@@ -265,9 +265,9 @@ def serve() -> None:
     import inspect
     import signal
 
-    from .heap import keep_freed_memory
+    from .heap import tune_memory
 
-    keep_freed_memory()  # as the parent's: a job's temporaries are reused, not mapped anew
+    tune_memory()  # as the parent's: a job's temporaries are reused, not mapped anew
     if hasattr(signal, "SIGINT"):
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     src = os.fdopen(os.dup(0), "rb")

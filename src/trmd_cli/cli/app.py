@@ -53,9 +53,9 @@ for _name in COMMANDS:
 
 
 def main() -> None:
-    from ..heap import keep_freed_memory
+    from ..heap import tune_memory
 
-    keep_freed_memory()  # a frame's temporaries reuse the heap's pages (see trmd_cli.heap)
+    tune_memory()  # a frame's temporaries reuse the heap's pages (see trmd_cli.heap)
     app()
 
 
