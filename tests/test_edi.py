@@ -47,6 +47,19 @@ def test_single_pixel_steps_match_hand_computation():
     np.testing.assert_allclose(lat[:, 0, 0], expected, rtol=1e-6)
 
 
+def test_fired_pixels_integral_by_hand():
+    # pixel (0, 0): the steps of the test above, J = 2.25 at c = ln 2; pixel (2, 1): one +1 at
+    # 50 of [0, 100], J = (1 + 2) / 2 = 1.5; every other pixel is silent, J = 1
+    ev = make_stream(np.array([0, 0, 2, 0]), np.array([0, 0, 1, 0]),
+                     np.array([25, 50, 50, 75]), np.array([1, 1, 1, 0]), 3, 2)
+    model = EdiEvents.build(ev, Exposure(0, 100))
+    fired = model.fired_integral(LN2)
+    np.testing.assert_allclose(fired, [2.25, 1.5], rtol=1e-12)
+    full = model.integral(LN2)
+    np.testing.assert_array_equal(full.reshape(-1)[[0, 5]], fired)
+    np.testing.assert_array_equal(np.delete(full.reshape(-1), [0, 5]), 1.0)
+
+
 def test_reference_free_and_mean_equals_blurry(rng):
     # the defining property: the latent frames average back to the blurry frame
     ev = make_stream(rng.integers(0, 5, 400), rng.integers(0, 4, 400),

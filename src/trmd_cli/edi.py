@@ -320,17 +320,28 @@ class EdiEvents:
         """J = (1/T) ∫ exp(c·S(t)) dt per pixel: (H, W) float64, exact."""
         out = self.lead.copy()
         if self.count:
-            pixels, group = self._runs
-            lo, hi, idx = self._level_table_index
-            table = _exp_table(lo, hi, contrast)
-            if table is None:
-                weights = self.dur * exp_levels(self.level, contrast)
-            else:
-                weights = self.dur * table[idx]
-            # per fired pixel, in event order: the sums of a dense bincount, on U bins not H·W
-            acc = np.bincount(group, weights=weights, minlength=len(pixels))
-            out[pixels] = acc + self.lead[pixels]
+            out[self._runs[0]] = self.fired_integral(contrast)
         return out.reshape(self.height, self.width)
+
+    def fired_integral(self, contrast: float) -> np.ndarray:
+        """J of the pixels that fired (``sparse_levels``' pixels, in that order): (U,) float64,
+        the same numbers as :meth:`integral` there (every other pixel's J is its ``lead``)."""
+        pixels, group = self._runs
+        if self.count == 0:
+            return np.zeros(0, np.float64)
+        lo, hi, idx = self._level_table_index
+        table = _exp_table(lo, hi, contrast)
+        if table is None:
+            weights = self.dur * exp_levels(self.level, contrast)
+        else:
+            weights = self.dur * table[idx]
+        # per fired pixel, in event order: the sums of a dense bincount, on U bins not H·W
+        acc = np.bincount(group, weights=weights, minlength=len(pixels))
+        return acc + self._lead_fired
+
+    @cached_property
+    def _lead_fired(self) -> np.ndarray:
+        return self.lead[self._runs[0]]
 
     def sparse_levels(self, fractions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """S at instants (fractions of the window, clamped to [0, 1]) for the pixels that fired:

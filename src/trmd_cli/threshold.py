@@ -147,7 +147,12 @@ class ContrastObjective:
             # per instant, the fired pixels whose S is not 0 there (the others keep the base),
             # as flat pixel indices, and their S
             moved = [np.flatnonzero(row) for row in s]
+            self._moved = moved
             self._moved_pixels = [self._pixels[m] for m in moved]
+            # a silent pixel's J is exactly 1, so its latent is B at every c: its log is taken
+            # once here, and an evaluation computes the fired pixels' only
+            self._blurry_fired = self.blurry.reshape(-1)[self._pixels]
+            self._log_silent = np.log(self.blurry + np.float32(_EPS))
         else:
             twice = 2.0 * model.levels_at(instants)
             self._lookup = bool(np.allclose(twice, np.rint(twice), atol=1e-6))
@@ -205,22 +210,26 @@ class ContrastObjective:
         """The part of ``total`` (Σ D² over the blocks) the per-block fits explain at c."""
         cv2 = self._cv2
         self.evaluations += 1
-        base = self.blurry / self.model.integral(contrast).astype(np.float32)
         if self._lookup:
             table = np.exp(np.float32(contrast / 2)
                            * np.arange(self._lo, self._hi + 1, dtype=np.float32))
         if self._pixels is not None:
-            # where S = 0 (every pixel that never fired, and fired ones between their steps)
-            # the latent is the base (exp(0) = 1): its log is computed once, not per instant
-            log_base = np.log(base + np.float32(_EPS))
-            base_flat = base.reshape(-1)
+            # B / J on the fired pixels (elsewhere J = 1); where S = 0 (every silent pixel,
+            # and fired ones between their steps) the latent is that base (exp(0) = 1): its
+            # log is computed once, not per instant
+            base_fired = self._blurry_fired / self.model.fired_integral(contrast).astype(
+                np.float32)
+            log_base = self._log_silent.copy()
+            log_base.reshape(-1)[self._pixels] = np.log(base_fired + np.float32(_EPS))
+        else:
+            base = self.blurry / self.model.integral(contrast).astype(np.float32)
         num = 0.0
         for k, d in enumerate(self.counts):
             if self._pixels is not None:
-                pix = self._moved_pixels[k]
                 log_l = log_base.copy()
-                log_l.reshape(-1)[pix] = np.log(
-                    base_flat[pix] * table[self._moved_levels[k]] + np.float32(_EPS))
+                log_l.reshape(-1)[self._moved_pixels[k]] = np.log(
+                    base_fired[self._moved[k]] * table[self._moved_levels[k]]
+                    + np.float32(_EPS))
             else:
                 if self._lookup:
                     lat = base * table[self.levels[k]]
