@@ -392,15 +392,14 @@ class EdiEvents:
 
     def ratio(self, fractions: np.ndarray, contrast: float) -> np.ndarray:
         """``exp(c·S(t)) / J``: (K, H, W) float32, the factor applied to the blurry frame."""
-        j = self.integral(contrast).reshape(-1)
         pixels, s = self.sparse_levels(fractions)
         k = len(s)
-        # where S = 0 (every silent pixel, and fired ones between their steps) the factor is
-        # exp(0)/J = 1/J; only the fired pixels need the look-up
-        out = np.empty((k, j.size), np.float32)
-        out[:] = (1.0 / j).astype(np.float32)
+        # a silent pixel's J is 1 (its lead is the whole window): its factor is 1 at every
+        # instant; the fired pixels' is exp(c·S)/J, 1/J between their steps
+        out = np.ones((k, self.width * self.height), np.float32)
         if s.size:
-            out[:, pixels] = (exp_levels(s, contrast) / j[pixels]).astype(np.float32)
+            out[:, pixels] = (exp_levels(s, contrast) / self.fired_integral(contrast)
+                              ).astype(np.float32)
         return out.reshape(k, self.height, self.width)
 
 
