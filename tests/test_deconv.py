@@ -449,7 +449,19 @@ def test_background_motion_when_the_estimate_follows_a_mover(monkeypatch):
     assert psnr(col.frames[3, ..., 0], s.sharp[3]) > psnr(edi.frames[3], s.sharp[3]) + 1.5
 
 
-def test_disputed_frame_without_a_background_motion_keeps_the_guarded_global_one(monkeypatch):
+@pytest.fixture
+def no_helper():
+    """No helper process: the tiles vote in this process (where a mock can count them), not
+    in a helper an earlier test of this worker may have started."""
+    from trmd_cli import helper_process
+
+    helper_process.allow(False)
+    yield
+    helper_process.allow(True)
+
+
+def test_disputed_frame_without_a_background_motion_keeps_the_guarded_global_one(
+        monkeypatch, no_helper):
     """A tile disputes the global motion, but no background motion holds: the frame is the
     global motion's guarded deconvolution, exactly as if nothing had disputed it, and the
     tiles vote once. (A small patch whose global motion the guard keeps; the dispute and the
@@ -570,3 +582,28 @@ def test_noisy_frame_deconvolved_better_than_its_anchor(sigma):
     out = deconvolve(blurry, MOTION, cfg, start=anchor, anchor=anchor).frames([0.5])[0]
     inner = (slice(6, -6), slice(6, -6))
     assert psnr(out[inner], sharp[inner]) > psnr(anchor[inner], sharp[inner]) + 0.5
+
+
+def test_a_partly_trusted_gain_is_trusted_whole_when_its_halves_agree(monkeypatch):
+    import trmd_cli.motion as motion_pkg
+
+    asked = []
+
+    def spread(value):
+        def split(events, exposure, motion, hot_mask=None):
+            asked.append(motion.confidence)
+            return value
+        return split
+
+    m = GlobalMotion((2.0, 1.0), centre=(10.0, 10.0), confidence=1.07)
+    monkeypatch.setattr(motion_pkg, "split_agreement", spread(0.08))
+    assert deconv.trusted_gain(m, None, None) == 1.1  # 0.08 px ≤ SPLIT_TRUST_PX: whole trust
+    monkeypatch.setattr(motion_pkg, "split_agreement", spread(0.25))
+    assert deconv.trusted_gain(m, None, None) == 1.07  # halves apart: the gain's own
+    monkeypatch.setattr(motion_pkg, "split_agreement", spread(float("nan")))
+    assert deconv.trusted_gain(m, None, None) == 1.07  # nothing to compare: the gain's own
+    # full or no trust from the gain alone: the halves are not asked
+    for gain in (1.03, 1.05, 1.1, 1.4):
+        assert deconv.trusted_gain(GlobalMotion((2.0, 1.0), centre=(10.0, 10.0),
+                                                confidence=gain), None, None) == gain
+    assert asked == [1.07, 1.07, 1.07]

@@ -7,7 +7,7 @@ import pytest
 
 from trmd_cli.edi import hot_pixel_mask
 from trmd_cli.events import EventStream, Exposure
-from trmd_cli.motion import GlobalMotion, MotionSearch, estimate_motion
+from trmd_cli.motion import GlobalMotion, MotionSearch, estimate_motion, split_agreement
 from trmd_cli.simulate import MotionRanges, make_sample
 from trmd_cli.simulate.sample import plan_sequence
 
@@ -117,6 +117,23 @@ def test_too_few_events_give_no_estimate():
                      np.array([0, 10], np.int64), np.array([1, -1], np.int8), W, H)
     m = estimate_motion(ev, Exposure(0, 100))
     assert m.confidence == 0.0 and m.events == 2 and m.velocity == (0.0, 0.0)
+
+
+def test_split_halves_agree_on_many_events_and_spread_on_few():
+    """The even and the odd events of a rich window find the same motion within a tenth of a
+    pixel; thinned to a few thousand, their estimates spread further apart, as their true
+    errors do; below MIN_EVENTS a half there is nothing to compare."""
+    s, plan = camera_sample(2)
+    hot = hot_pixel_mask(s.events, s.exposure)
+    m = estimate_motion(s.events, s.exposure, hot)
+    rich = split_agreement(s.events, s.exposure, m, hot)
+    assert rich < 0.1
+    few = s.events.take(slice(None, None, max(len(s.events) // 3000, 1)))
+    m_few = estimate_motion(few, s.exposure, hot)
+    thin = split_agreement(few, s.exposure, m_few, hot)
+    assert thin > 2 * rich, (rich, thin)
+    scarce = s.events.take(slice(0, 900))
+    assert np.isnan(split_agreement(scarce, s.exposure, m, hot))
 
 
 def test_jerk_follows_a_bending_path():

@@ -5,9 +5,9 @@ true camera path)."""
 
 from __future__ import annotations
 
-from .cmax import MIN_EVENTS, MotionSearch, estimate_motion, warped_image
+from .cmax import MIN_EVENTS, MotionSearch, estimate_motion, split_agreement, warped_image
 from .model import GlobalMotion
 from .sampled import SampledMotion, event_gain
 
-__all__ = ["GlobalMotion", "MotionSearch", "estimate_motion", "warped_image", "MIN_EVENTS",
-           "SampledMotion", "event_gain"]
+__all__ = ["GlobalMotion", "MotionSearch", "estimate_motion", "split_agreement", "warped_image",
+           "MIN_EVENTS", "SampledMotion", "event_gain"]

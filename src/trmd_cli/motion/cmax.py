@@ -31,8 +31,8 @@ import numpy as np
 from ..events import EventStream, Exposure
 from .model import GlobalMotion
 
-__all__ = ["estimate_motion", "warped_image", "window_points", "MIN_EVENTS", "PERSPECTIVE_MIN_GAIN",
-           "JERK_MIN_GAIN", "MotionSearch"]
+__all__ = ["estimate_motion", "split_agreement", "warped_image", "window_points", "MIN_EVENTS",
+           "PERSPECTIVE_MIN_GAIN", "JERK_MIN_GAIN", "MotionSearch"]
 
 #: fewer events than this in the window: no estimate (confidence 0)
 MIN_EVENTS = 500
@@ -534,6 +534,24 @@ def estimate_motion(events: EventStream, exposure: Exposure,
     # (:func:`~trmd_cli.motion.sampled.event_gain`), whatever σ the search used
     score = _Level(x, y, u, w, h, 1.0, centre, radius, sigma=1.0)
     return _params_to_motion(q, centre, radius, score.gain(q), n)
+
+
+def split_agreement(events: EventStream, exposure: Exposure, motion: GlobalMotion,
+                    hot_mask: np.ndarray | None = None,
+                    search: MotionSearch | None = None) -> float:
+    """How far apart (pixels, :meth:`GlobalMotion.end_point_error_px`) the motions estimated
+    from the window's even and from its odd events lie, each search started at ``motion``'s
+    velocity: the part of an estimate's error that comes from its events' noise and number.
+    A bias both halves share (the objective's own) does not show; nan when a half holds
+    fewer than :data:`MIN_EVENTS` events.
+    """
+    inside = events.within(exposure)
+    start = (float(motion.velocity[0]), float(motion.velocity[1]))
+    halves = [estimate_motion(inside.take(slice(k, None, 2)), exposure, hot_mask, search,
+                              start=start) for k in (0, 1)]
+    if min(m.events for m in halves) < MIN_EVENTS:
+        return float("nan")
+    return halves[0].end_point_error_px(halves[1], events.width, events.height)
 
 
 def _ascend(level: _Level, q0: np.ndarray, free, lim: tuple[float, float, float],
