@@ -906,8 +906,10 @@ def _motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: 
         # estimate with no clear gain has no motion for the tiles to find either
         return second_chance(reason) if given else MotionDeblur(edi_frames, zero, motion,
                                                                 (reason,))
-    # the tiles' gains need only the motion: measured beside the deconvolution
+    # the tiles' gains, and how far an estimate is trusted, need only the motion: measured
+    # beside the deconvolution
     gains_later = beside(tile_gains, motion, *points, w, h)
+    trust_later = None if given else beside(trusted_gain, motion, events, exposure, hot_mask)
 
     def hopeless(k: int, data_weight: np.ndarray) -> bool:
         # the share as the verdict below counts it: before the global gain's trust (a gain
@@ -924,7 +926,7 @@ def _motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: 
     d = deconvolve(blurry, motion, cfg, start=edi_middle, anchor=edi_middle,
                    stop=None if given or refit else hopeless)
     gains = gains_later.result()
-    gain = motion.confidence if given else trusted_gain(motion, events, exposure, hot_mask)
+    gain = motion.confidence if trust_later is None else trust_later.result()
     if refit:
         # where re-blurring explains B the deconvolution's change of log over the exposure is
         # right even when the guard does not keep the motion: the c it implies is EDI's, in
