@@ -21,7 +21,8 @@ import numpy as np
 
 from .errors import ShapeError
 
-__all__ = ["GHOST_SIGMA", "GHOST_LOW", "GHOST_HIGH", "ghost_weight", "without_ghosts"]
+__all__ = ["GHOST_SIGMA", "GHOST_LOW", "GHOST_HIGH", "carried", "ghost_weight",
+           "without_ghosts"]
 
 #: Gaussian σ (px) over which the disagreement is averaged: one noisy event (one pixel) is
 #: diluted ≈ 14×, a ghost's edge (a line, or an area) is not
@@ -51,11 +52,10 @@ def carried(frames: np.ndarray, change: np.ndarray, n: int) -> np.ndarray:
     return np.stack([cv2.medianBlur(np.ascontiguousarray(p), 3) for p in out])
 
 
-def ghost_weight(frames: np.ndarray, change: np.ndarray, n: int, carried_frames: np.ndarray
-                 ) -> np.ndarray:
+def ghost_weight(frames: np.ndarray, carried_frames: np.ndarray, n: int) -> np.ndarray:
     """Per instant and pixel, how much of the frame is a ghost: (K, H, W) float32 in [0, 1],
-    0 at k = N. ``change``: (K, H, W) the events' log-intensity change from the middle instant
-    (``c·ΔS``); ``carried_frames``: :func:`carried`'s."""
+    0 at k = N, from how far ``frames`` and ``carried_frames`` (:func:`carried`'s: the events'
+    reading) disagree in log intensity."""
     import cv2
 
     lf = np.log(np.maximum(_luma(frames), 0.0) + np.float32(_EPS))
@@ -87,7 +87,7 @@ def without_ghosts(frames: np.ndarray, change: np.ndarray, n: int) -> np.ndarray
         raise ShapeError(f"frames {frames.shape} and changes {np.shape(change)} must be "
                          f"(2N+1, H, W[, 3]) and (2N+1, H, W) with 2N+1 = {2 * n + 1}")
     moved = carried(frames, change, n)
-    w = ghost_weight(frames, change, n, moved)
+    w = ghost_weight(frames, moved, n)
     if frames.ndim == 4:
         w = w[..., None]
     return frames + w * (moved - frames)
