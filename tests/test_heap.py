@@ -85,27 +85,29 @@ def test_huge_page_advice_off_where_the_kernel_would_stall(tmp_path, setting, wa
     pytest.importorskip("numpy._core.multiarray")
     defrag = tmp_path / "defrag"
     defrag.write_text(setting + "\n")
-    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
-    out = subprocess.run([sys.executable, "-c", _ADVICE, str(defrag)], capture_output=True,
-                         text=True, env=env, check=True)
-    assert out.stdout.split() == [_default(env) if w == "default" else w for w in want]
+    assert _advice(defrag) == [_default() if w == "default" else w for w in want]
 
 
-def _default(env: dict) -> str:
+def _advice(defrag, **env: str) -> list[str]:
+    """:data:`_ADVICE`'s words with the kernel's setting read from ``defrag``, in an
+    environment without NUMPY_MADVISE_HUGEPAGE unless ``env`` gives it."""
+    base = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    return subprocess.run([sys.executable, "-c", _ADVICE, str(defrag)], capture_output=True,
+                          text=True, env={**base, **env}, check=True).stdout.split()
+
+
+def _default() -> str:
     """numpy's own advice in a process left alone (on on Linux 4.6 and later)."""
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
     return subprocess.run([sys.executable, "-c", "import numpy; from numpy._core.multiarray "
                            "import _set_madvise_hugepage as s; print(s(True))"],
                           capture_output=True, text=True, env=env, check=True).stdout.strip()
 
 
 def test_huge_page_advice_left_to_the_user_and_to_unreadable_settings(tmp_path):
-    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
-    missing = subprocess.run([sys.executable, "-c", _ADVICE, str(tmp_path / "none")],
-                             capture_output=True, text=True, env=env, check=True)
-    default = _default(env)
-    assert missing.stdout.split() == ["False", default, default, "None"]
+    default = _default()
+    assert _advice(tmp_path / "none") == ["False", default, default, "None"]
     defrag = tmp_path / "defrag"
     defrag.write_text("always defer defer+madvise [madvise] never\n")
-    users = subprocess.run([sys.executable, "-c", _ADVICE, str(defrag)], capture_output=True,
-                           text=True, env={**env, "NUMPY_MADVISE_HUGEPAGE": "1"}, check=True)
-    assert users.stdout.split() == ["False", "True", "True", "1"]  # the user's 1: on
+    # the user's 1: on
+    assert _advice(defrag, NUMPY_MADVISE_HUGEPAGE="1") == ["False", "True", "True", "1"]
