@@ -8,10 +8,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from trmd_cli.edi import EdiBins, edi_from_bins, hot_pixel_mask
+from trmd_cli.edi import EdiBins, EdiEvents, PixelEvents, edi_from_bins, hot_pixel_mask
 from trmd_cli.errors import InputError
 from trmd_cli.events import make_stream
 from trmd_cli.ghosts import without_ghosts
+from trmd_cli.isolated import without_isolated
 from trmd_cli.methods import (
     METHODS,
     REGISTRY,
@@ -51,7 +52,12 @@ def test_prepare_settles_the_threshold_edi_estimates(sample):
     prep = EdiMethod(N).prepare(s.blurry, s.events, s.exposure)
     assert isinstance(prep, Prepared)
     hot = hot_pixel_mask(s.events, s.exposure)
-    assert prep.contrast == estimate_contrast(s.blurry, s.events, s.exposure, hot_mask=hot)
+    kept = EdiMethod(N, drop_isolated=False).prepare(s.blurry, s.events, s.exposure)
+    assert kept.contrast == estimate_contrast(s.blurry, s.events, s.exposure, hot_mask=hot)
+    # by default the estimate leaves the isolated events out, as EDI's frames do
+    used = without_isolated(PixelEvents.build(s.events, s.exposure).without(hot))
+    assert prep.contrast == search_contrast(
+        s.blurry, EdiEvents.build(s.events, s.exposure, window=used)).contrast
     assert prep.estimated and prep.reliable
     assert np.array_equal(prep.hot, hot) and prep.hot_pixels == int(hot.sum())
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -76,7 +82,10 @@ def test_prepare_keeps_the_one_sort_of_the_window_hot_pixels_included(sample):
     prep = EdiMethod(N).prepare(s.blurry, hot_ev, s.exposure)
     assert prep.hot[7, 5] and prep.window.exposure == s.exposure
     assert len(prep.window) == len(hot_ev.within(s.exposure))
-    assert prep.model.count == len(prep.window) - int((prep.window.pix == 7 * ev.width + 5).sum())
+    # the hot pixel's events are out of EDI's model, and so are the isolated ones
+    without_hot = prep.window.without(prep.hot)
+    assert len(without_hot) == len(prep.window) - int((prep.window.pix == 7 * ev.width + 5).sum())
+    assert prep.model.count == len(without_isolated(without_hot)) < len(without_hot)
     np.testing.assert_array_equal(scer_voxels(hot_ev, s.exposure, N, window=prep.window),
                                   scer_voxels(hot_ev, s.exposure, N))
     assert EdiMethod(N).prepare(s.blurry, np.zeros((4, 48, 64))).window is None

@@ -239,6 +239,8 @@ def run_meta(ins, est, config: MethodConfig, offset_us: int, bit_depth: int,
         "inputs": ins.paths,
         "time_offset_us": offset_us,
         **contrast_meta(config, recording),
+        "hot_pixels_ignored": config.hot_pixels,
+        "isolated_events_dropped": config.drop_isolated,
         "bit_depth": bit_depth,
     }
     if ins.binned:

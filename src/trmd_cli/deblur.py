@@ -140,7 +140,7 @@ def deblur_frames(source: Iterable[FrameWindow | BinnedWindow], method: Method, 
                           (*notes, *(f"frame {frame.name}: {note}" for note in est.notes)))
 
 
-def recording_contrast(source: Sequence, *, hot_pixels: bool = True,
+def recording_contrast(source: Sequence, *, hot_pixels: bool = True, drop_isolated: bool = True,
                        frames: int = RECORDING_FRAMES,
                        candidates: int = RECORDING_CANDIDATES,
                        share_instants: bool = True) -> RecordingContrast | None:
@@ -157,6 +157,8 @@ def recording_contrast(source: Sequence, *, hot_pixels: bool = True,
         source: the recording's items (:class:`FrameWindow` or :class:`BinnedWindow`), with
             ``len`` and ``subset(positions)``.
         hot_pixels: ignore the events of hot pixels, as the method will.
+        drop_isolated: leave out the events no neighbour corroborates, as the method will
+            (:mod:`trmd_cli.isolated`).
         share_instants: the frames share out the energy's instants (frame i of n takes every
             n-th from the i-th), so that an evaluation costs what one frame's does; else each
             frame is measured at all of them.
@@ -186,7 +188,7 @@ def recording_contrast(source: Sequence, *, hot_pixels: bool = True,
     step = len(kept) if share_instants else 1
     def objective(numbered):
         i, (_, _, item) = numbered
-        return _objective(item, hot_pixels, INSTANTS[i % step::step])
+        return _objective(item, hot_pixels, drop_isolated, INSTANTS[i % step::step])
 
     # the frames' objectives (sorting, tables and filters of 10⁴–10⁵ events each) on the
     # process's threads
@@ -209,7 +211,7 @@ def _count(item: FrameWindow | BinnedWindow) -> int:
     return len(item.events.slice(exposure.start_us, exposure.end_us + 1))
 
 
-def _objective(item: FrameWindow | BinnedWindow, hot_pixels: bool,
+def _objective(item: FrameWindow | BinnedWindow, hot_pixels: bool, drop_isolated: bool,
                instants: np.ndarray) -> ContrastObjective | None:
     """The threshold's objective for one item; None when, hot pixels left out, it holds too
     few events to estimate from (or none near the instants the energy is measured at)."""
@@ -217,12 +219,12 @@ def _objective(item: FrameWindow | BinnedWindow, hot_pixels: bool,
     if isinstance(item, BinnedWindow):
         bins = item.bins
         blurry = check_blurry(frame.image, bins.shape[2], bins.shape[1], frame.name)
-        model, _, _ = window_model(bins, None, False)
+        model, _, _ = window_model(bins, None, False, drop_isolated)
         objective = ContrastObjective.from_bins(model, _in_range(blurry, frame)[0], instants)
     else:
         events = item.events
         blurry = check_blurry(frame.image, events.width, events.height, frame.name)
-        model, _, _ = window_model(events, frame.exposure, hot_pixels)
+        model, _, _ = window_model(events, frame.exposure, hot_pixels, drop_isolated)
         if model.count < MIN_EVENTS:
             return None
         objective = ContrastObjective.from_events(model, _in_range(blurry, frame)[0], instants)
@@ -239,7 +241,8 @@ def settle_recording(method: Method, source: Sequence, config: MethodConfig
             or not method.needs.contrast or len(source) < 2:
         # (one frame: its own estimate is the recording's)
         return method, None
-    rec = recording_contrast(source, hot_pixels=config.hot_pixels)
+    rec = recording_contrast(source, hot_pixels=config.hot_pixels,
+                             drop_isolated=config.drop_isolated)
     return (method, None) if rec is None else (method.for_recording(rec), rec)
 
 

@@ -30,6 +30,7 @@ import numpy as np
 from .edi import EdiBins, EdiEvents, PixelEvents, check_blurry, hot_pixel_mask, propagate
 from .errors import InputError, ShapeError
 from .events import EventStream, Exposure
+from .isolated import bins_without_isolated, without_isolated
 from .precision import PRECISIONS
 from .threshold import RecordingContrast, search_contrast
 
@@ -77,6 +78,9 @@ class MethodConfig:
             its frames (:func:`trmd_cli.deblur.settle_recording`); ``"frame"`` — every frame
             its own. A method made from the config estimates per frame until it is settled.
         hot_pixels: ignore the events of hot pixels (see :func:`trmd_cli.edi.hot_pixel_mask`).
+        drop_isolated: leave out of EDI's model the events that no neighbouring pixel
+            corroborates (background activity, :mod:`trmd_cli.isolated`): EDI's frames, c's
+            estimate and every method's use of them. The networks' voxels keep every event.
         weights, device, threads, precision: TRMD only (see ``TrmdEstimator.load``;
             ``precision="auto"`` runs the network in bfloat16 on CPUs that compute it natively
             — on the pinned validation set within 0.003 dB of float32).
@@ -90,6 +94,7 @@ class MethodConfig:
     contrast: float | None = None
     contrast_scope: str = "recording"
     hot_pixels: bool = True
+    drop_isolated: bool = True
     weights: str | Path | None = None
     device: str = "auto"
     threads: int | None = None
@@ -312,8 +317,8 @@ def motion_frames(blurry: np.ndarray, events: EventStream, exposure: Exposure,
 
 
 def window_model(events: EventStream | np.ndarray, exposure: Exposure | None,
-                 hot_pixels: bool) -> tuple[EdiEvents | EdiBins, np.ndarray | None,
-                                            PixelEvents | None]:
+                 hot_pixels: bool, drop_isolated: bool = True
+                 ) -> tuple[EdiEvents | EdiBins, np.ndarray | None, PixelEvents | None]:
     """What every method settles first for one exposure: ``(model, hot, window)`` — EDI's
     model of the window ready for any c, the hot-pixel mask (None when not asked for, and for
     binned data) and the window's per-pixel sort (None for binned data).
@@ -321,22 +326,29 @@ def window_model(events: EventStream | np.ndarray, exposure: Exposure | None,
     Args:
         events: the raw stream with ``exposure`` its window (µs), or (M, H, W) signed counts
             of M equal bins spanning the exposure.
+        drop_isolated: the model leaves out the events no neighbour corroborates
+            (:mod:`trmd_cli.isolated`; after the hot pixels', whose events corroborate
+            nothing); ``window`` keeps them.
     """
     if isinstance(events, EventStream):
         if exposure is None:
             raise InputError("raw events need their exposure window")
-        key = (exposure, bool(hot_pixels))
+        key = (exposure, bool(hot_pixels), bool(drop_isolated))
         kept = _MODELS.get(id(events))
         if kept is not None and kept[0]() is events and kept[1] == key:
             return kept[2]
         window = PixelEvents.build(events, exposure)
         hot = hot_pixel_mask(events, exposure, window=window) if hot_pixels else None
-        model = (EdiEvents.build(events, exposure, hot, window=window), hot, window)
+        used = window.without(hot)
+        if drop_isolated:
+            used = without_isolated(used)
+        model = (EdiEvents.build(events, exposure, window=used), hot, window)
         if id(events) not in _MODELS:
             weakref.finalize(events, _MODELS.pop, id(events), None)
         _MODELS[id(events)] = (weakref.ref(events), key, model)
         return model
-    return EdiBins.build(_check_bins(events)), None, None
+    bins = _check_bins(events)
+    return EdiBins.build(bins_without_isolated(bins) if drop_isolated else bins), None, None
 
 
 #: the last window model of each event stream still alive, by identity: a frame the
@@ -357,34 +369,43 @@ class EdiMethod:
                "pixels ignored (binned data: events spread evenly within each bin)")
 
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
-                 hot_pixels: bool = True, *, recording: RecordingContrast | None = None) -> None:
+                 hot_pixels: bool = True, *, recording: RecordingContrast | None = None,
+                 drop_isolated: bool = True) -> None:
         self.n = n
         self.contrast = contrast
         self.hot_pixels = hot_pixels
+        self.drop_isolated = drop_isolated
         #: where ``contrast`` came from when it was estimated over the recording, else None
         self.recording = recording
 
     @classmethod
     def from_config(cls, config: MethodConfig) -> EdiMethod:
-        return cls(config.n or DEFAULT_N, config.contrast, config.hot_pixels)
+        return cls(config.n or DEFAULT_N, config.contrast, config.hot_pixels,
+                   drop_isolated=config.drop_isolated)
 
     def prepare(self, blurry, events, exposure=None) -> Prepared:
         """Sort the window's events per pixel (or integrate the bins) and settle c: the given
         one (or the recording's, :meth:`for_recording`), else
         :func:`~trmd_cli.threshold.search_contrast` on this frame. Binned data has no
         hot-pixel mask (the bins hold no per-event information to judge by)."""
-        model, hot, window = window_model(events, exposure, self.hot_pixels)
+        model, hot, window = window_model(events, exposure, self.hot_pixels,
+                                          self.drop_isolated)
         if self.contrast is not None:
             return Prepared(model, self.contrast, self.recording is not None, hot=hot,
                             window=window)
         est = search_contrast(blurry, model)
-        return Prepared(model, est.contrast, True, est.reliable, hot, _contrast_note(est),
-                        window)
+        note = _contrast_note(est)
+        if not est.reliable and window is not None and model.count < len(window):
+            note += (f" (of the window's {len(window)} events, {len(window) - model.count} are "
+                     "left out: hot pixels' (`hot_pixels=False` keeps them) or isolated "
+                     "(`drop_isolated=False`))")
+        return Prepared(model, est.contrast, True, est.reliable, hot, note, window)
 
     def for_recording(self, recording: RecordingContrast) -> EdiMethod:
         """This method with the recording's estimated c for every frame (reported as
         estimated, with no note per frame: the run says once where it came from)."""
-        return EdiMethod(self.n, recording.contrast, self.hot_pixels, recording=recording)
+        return EdiMethod(self.n, recording.contrast, self.hot_pixels, recording=recording,
+                         drop_isolated=self.drop_isolated)
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         b = check_blurry(blurry, events.width, events.height)
@@ -420,7 +441,8 @@ class TrmdMethod:
     def __init__(self, n: int | None = None, weights: str | Path | None = None,
                  device: str = "auto", threads: int | None = None,
                  contrast: float | None = None, hot_pixels: bool = True,
-                 precision: str = "auto", *, settle_contrast: bool = False) -> None:
+                 precision: str = "auto", *, settle_contrast: bool = False,
+                 drop_isolated: bool = True) -> None:
         from .models.estimator import TrmdEstimator
 
         #: the loaded network (:class:`~trmd_cli.models.estimator.TrmdEstimator`)
@@ -432,12 +454,13 @@ class TrmdMethod:
         self.precision = self.model.precision
         self.needs = MethodNeeds(contrast=self.model.needs_contrast or settle_contrast,
                                  timing=self.model.needs_timing, weights=True)
-        self._edi = EdiMethod(self.n, contrast, hot_pixels)
+        self._edi = EdiMethod(self.n, contrast, hot_pixels, drop_isolated=drop_isolated)
 
     @classmethod
     def from_config(cls, config: MethodConfig) -> TrmdMethod:
         return cls(config.n, config.weights, config.device, config.threads, config.contrast,
-                   config.hot_pixels, config.precision, settle_contrast=config.settle_contrast)
+                   config.hot_pixels, config.precision, settle_contrast=config.settle_contrast,
+                   drop_isolated=config.drop_isolated)
 
     def prepare(self, blurry, events, exposure=None) -> Prepared:
         """c settled as EDI settles it (see :meth:`EdiMethod.prepare`)."""
@@ -527,17 +550,18 @@ class MotionMethod:
     note_prefix = ""
 
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
-                 hot_pixels: bool = True, motion=None) -> None:
+                 hot_pixels: bool = True, motion=None, *, drop_isolated: bool = True) -> None:
         """``motion``: a path to deconvolve along instead of the estimate (a
         :class:`~trmd_cli.motion.SampledMotion`, judged by the guard on each window's events
         as an estimate is)."""
         self.n = n
         self.motion = motion
-        self._edi = EdiMethod(n, contrast, hot_pixels)
+        self._edi = EdiMethod(n, contrast, hot_pixels, drop_isolated=drop_isolated)
 
     @classmethod
     def from_config(cls, config: MethodConfig) -> MotionMethod:
-        return cls(config.n or DEFAULT_N, config.contrast, config.hot_pixels)
+        return cls(config.n or DEFAULT_N, config.contrast, config.hot_pixels,
+                   drop_isolated=config.drop_isolated)
 
     def prepare(self, blurry, events, exposure=None) -> Prepared:
         """c settled as EDI settles it (see :meth:`EdiMethod.prepare`)."""
@@ -588,7 +612,8 @@ class FusedMethod:
     def __init__(self, n: int | None = None, weights: str | Path | None = None,
                  device: str = "auto", threads: int | None = None,
                  contrast: float | None = None, hot_pixels: bool = True,
-                 precision: str = "auto", fusion_weights: str | Path | None = None) -> None:
+                 precision: str = "auto", fusion_weights: str | Path | None = None, *,
+                 drop_isolated: bool = True) -> None:
         import torch
 
         from .models.fusion import default_fusion_path, load_fusion
@@ -596,7 +621,7 @@ class FusedMethod:
         from .precision import resolve_precision
 
         self._trmd = TrmdMethod(n, weights, device, threads, contrast, hot_pixels, precision,
-                                settle_contrast=True)
+                                settle_contrast=True, drop_isolated=drop_isolated)
         self.n = self._trmd.n
         self.precision = self._trmd.precision
         fpath = default_fusion_path() if fusion_weights is None else Path(fusion_weights)
@@ -623,7 +648,7 @@ class FusedMethod:
     @classmethod
     def from_config(cls, config: MethodConfig) -> FusedMethod:
         return cls(config.n, config.weights, config.device, config.threads, config.contrast,
-                   config.hot_pixels, config.precision)
+                   config.hot_pixels, config.precision, drop_isolated=config.drop_isolated)
 
     def prepare(self, blurry, events, exposure=None) -> Prepared:
         """c settled as EDI settles it (see :meth:`EdiMethod.prepare`)."""

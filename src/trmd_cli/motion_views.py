@@ -62,7 +62,7 @@ def displacement_field(motion, width: int, height: int) -> np.ndarray:
 
 def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
                  contrast: float | None = None, hot_pixels: bool = True,
-                 recording=None) -> MotionViews:
+                 recording=None, drop_isolated: bool = True) -> MotionViews:
     """Estimate the exposure's motion and run the motion method's guard, as
     ``trmd deblur --method motion`` does.
 
@@ -70,6 +70,8 @@ def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
         blurry: (H, W[, 3]) float32 [0, 1]; events, exposure: the stream and its window (µs).
         contrast: c for EDI's fallback, as given (None = estimated on this frame alone).
         hot_pixels: leave the events of hot pixels out.
+        drop_isolated: leave the events no neighbour corroborates out of EDI's fallback and
+            of c's estimate (:mod:`trmd_cli.isolated`).
         recording: the recording's estimated c (a
             :class:`~trmd_cli.threshold.RecordingContrast`), used instead of ``contrast``; as
             an estimate, it is refitted for EDI's frames as ``trmd deblur`` does.
@@ -79,7 +81,7 @@ def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
     from .motion.cmax import warped_image, window_points
 
     b = check_blurry(blurry, events.width, events.height)
-    edi = EdiMethod(3, contrast, hot_pixels)
+    edi = EdiMethod(3, contrast, hot_pixels, drop_isolated=drop_isolated)
     if recording is not None:
         edi = edi.for_recording(recording)
     prep = edi.prepare(b, events, exposure)

@@ -344,7 +344,9 @@ def test_sparse_frames_get_one_summary_line_about_c(sample, tmp_path):
     assert r.exit_code == 0, r.output
     lines = [ln for ln in r.stderr.splitlines() if "default c" in ln]
     assert len(lines) == 1, r.stderr
-    assert "5 of 5 frames" in lines[0] and "too few events (300" in lines[0]
+    # nearly all of a frame's 300 random events are isolated: left out, and said so
+    assert "5 of 5 frames" in lines[0] and "too few events (" in lines[0]
+    assert "of the window's 300 events" in lines[0] and "--keep-isolated" in lines[0]
     assert "--contrast" in lines[0]
     assert "clipped" not in r.stderr
 
@@ -628,7 +630,14 @@ def test_binned_frames_without_events_pass_through(binned, tmp_path):
 
 @needs_shared
 def test_ledvdi_deblur_every_frame_sharper(tmp_path):
-    """The real command on all 54 frames (c given: the estimate costs ~0.5 s a frame)."""
+    """The real command on all 54 frames (c given: the estimate costs ~0.5 s a frame).
+
+    Sharpness after a 3×3 median on both frames: the Laplacian counts speckle as detail, and
+    EDI's speckle is what leaving out the isolated events removes (measured: 1.70× → 1.53×
+    the blurry frames' Laplacian variance on average, 1.27× → 1.26× after the median). Some
+    frames are barely blurred: each must gain, the recording by a fifth."""
+    import cv2
+
     base = SHARED / "real" / "ledvdi-rotate"
     out = tmp_path / "ledvdi"
     r = run(base / "blurred", base / "EventBin3.mat", "-o", out, "--contrast", "0.4")
@@ -636,10 +645,13 @@ def test_ledvdi_deblur_every_frame_sharper(tmp_path):
     assert "18 bins per frame" in r.stderr
     folders = sorted(p for p in out.iterdir() if p.is_dir())
     assert [p.name for p in folders] == [f"{k:04d}" for k in range(2, 56)]
+    gains = []
     for folder in folders:
         blurry = read_image(base / "blurred" / f"{folder.name}.png")
-        assert sharpness(read_image(folder / "sharp.png")) > 1.1 * sharpness(blurry), \
-            folder.name
+        sharp = np.clip(read_image(folder / "sharp.png"), 0, 1)
+        gains.append(sharpness(cv2.medianBlur(sharp, 3)) / sharpness(cv2.medianBlur(blurry, 3)))
+        assert gains[-1] > 1.0, folder.name
+    assert np.mean(gains) > 1.2, gains
 
 
 @needs_shared

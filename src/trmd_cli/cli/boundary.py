@@ -61,6 +61,7 @@ FLAGS: dict[str, str | tuple[str, str]] = {
     "ground_truth": ("--gt", "--no-gt"),
     "limit": "--limit",
     "hot_pixels": ("--hot-pixels", "--keep-hot-pixels"),
+    "drop_isolated": ("--drop-isolated", "--keep-isolated"),
     "init_weights": "--init-weights",
     "interval_us": "--frame-interval-ms",
     "max_gap_frames": "--max-gap-frames",

@@ -64,6 +64,12 @@ Weights = Annotated[Path | None, typer.Option("--weights", help="RE-Net weights 
                                                  "the shipped weights.", readable=False)]
 HotPixels = Annotated[bool, typer.Option("--hot-pixels/--keep-hot-pixels",
                                          help="Ignore the events of hot pixels (default on).")]
+Isolated = Annotated[bool, typer.Option(
+    "--drop-isolated/--keep-isolated",
+    help="Leave out of EDI (its frames, the threshold's estimate, the priors it gives the "
+         "other methods) the events no neighbouring pixel corroborates within 1/16 of the "
+         "exposure: the sensor's background activity, which EDI turns into speckle (default "
+         "on; the networks' inputs keep every event).")]
 BitDepth = Annotated[int, typer.Option("--bit-depth", help="PNG bit depth: 8 or 16.")]
 Jobs = Annotated[str, typer.Option(
     "--jobs", "-j", help="Worker processes on this machine, each on its share of the frames "
@@ -120,7 +126,8 @@ def choose_method(method: str | None, weights: Path | None, default: str) -> str
 
 def method_config(method: str | None, weights: Path | None, n: int | None, contrast: str,
                   hot_pixels: bool, device: str, threads: int | None, bit_depth: int,
-                  precision: str = "auto", settle_contrast: bool = False):
+                  precision: str = "auto", settle_contrast: bool = False,
+                  drop_isolated: bool = True):
     """The options deblur and hfr share, checked and turned into a ``MethodConfig``."""
     from ..errors import InputError
     from ..methods import DEFAULT_METHOD, MethodConfig
@@ -128,8 +135,9 @@ def method_config(method: str | None, weights: Path | None, n: int | None, contr
     config = MethodConfig(method=choose_method(method, weights, DEFAULT_METHOD), n=n,
                           contrast=parse_contrast(contrast),
                           contrast_scope=contrast_scope(contrast), hot_pixels=hot_pixels,
-                          weights=weights, device=device, threads=threads,
-                          precision=precision, settle_contrast=settle_contrast)
+                          drop_isolated=drop_isolated, weights=weights, device=device,
+                          threads=threads, precision=precision,
+                          settle_contrast=settle_contrast)
     if bit_depth not in (8, 16):
         raise InputError(f"--bit-depth must be 8 or 16, got {bit_depth}",
                          hint="use --bit-depth 8 or --bit-depth 16")
@@ -154,6 +162,7 @@ def deblur(
     fps: Annotated[float, typer.Option("--fps", help="Playback rate of --video.")] = 10.0,
     bit_depth: BitDepth = 8,
     hot_pixels: HotPixels = True,
+    drop_isolated: Isolated = True,
     weights: Weights = None,
     device: Device = "auto",
     threads: Threads = None,
@@ -202,7 +211,7 @@ def deblur(
         raise InputError(f"deblur takes one or two inputs, got {len(inputs)}",
                          hint="for several images use a frames folder, or `trmd hfr`")
     config = method_config(method, weights, n, contrast, hot_pixels, device, threads,
-                           bit_depth, precision)
+                           bit_depth, precision, drop_isolated=drop_isolated)
     if video is not None and not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 10")
     offset = parse_duration_us(time_offset) if time_offset else 0

@@ -34,6 +34,7 @@ from .deblur import (
     BitDepth,
     Contrast,
     HotPixels,
+    Isolated,
     Method,
     NOpt,
     TimeOffset,
@@ -102,6 +103,7 @@ def hfr(
     time_offset: TimeOffset = None,
     bit_depth: BitDepth = 8,
     hot_pixels: HotPixels = True,
+    drop_isolated: Isolated = True,
     weights: Weights = None,
     device: Device = "auto",
     threads: Threads = None,
@@ -153,7 +155,8 @@ def hfr(
     recordings = recordings_in(inputs)
     # the gaps are filled by event integration, which needs c even where the method does not
     config = method_config(method, weights, n, contrast, hot_pixels, device, threads,
-                           bit_depth, precision, settle_contrast=fill_gaps)
+                           bit_depth, precision, settle_contrast=fill_gaps,
+                           drop_isolated=drop_isolated)
     if not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 30")
     offset = parse_duration_us(time_offset) if time_offset else 0

@@ -13,7 +13,7 @@ from typing import Annotated
 import typer
 
 from .boundary import as_flags, err, guarded, progress_enabled, warn
-from .deblur import Contrast, HotPixels, TimeOffset, contrast_scope, parse_contrast
+from .deblur import Contrast, HotPixels, Isolated, TimeOffset, contrast_scope, parse_contrast
 from .options import (
     Columns,
     Exposure,
@@ -43,6 +43,7 @@ def motion(
     contrast: Contrast = "auto",
     time_offset: TimeOffset = None,
     hot_pixels: HotPixels = True,
+    drop_isolated: Isolated = True,
     threads: Threads = None,
     time_unit: TimeUnit = None,
     sensor: Sensor = None,
@@ -97,7 +98,8 @@ def motion(
             # as `trmd deblur --method motion` settles it: one c for the recording
             from ..deblur import recording_contrast, recording_line
 
-            rec = recording_contrast(ins.source, hot_pixels=hot_pixels)
+            rec = recording_contrast(ins.source, hot_pixels=hot_pixels,
+                                     drop_isolated=drop_isolated)
             if rec is not None:
                 typer.echo(as_flags(recording_line(rec)))
         written: list[str] = []
@@ -113,7 +115,8 @@ def motion(
                     bar.advance(task)
                     continue
                 views = motion_views(f.image, win.events, e, contrast=c,
-                                     hot_pixels=hot_pixels, recording=rec)
+                                     hot_pixels=hot_pixels, recording=rec,
+                                     drop_isolated=drop_isolated)
                 folder = tmp
                 if not ins.single:
                     folder = tmp / frame_folder_name(f.name, f.index)
