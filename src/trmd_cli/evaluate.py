@@ -179,7 +179,7 @@ class _Output:
 
 def _build(names: Sequence[str], n: int, weights: str | Path | None, *, device: str = "auto",
            threads: int | None = None, precision: str = "auto",
-           built: Mapping[str, Method] | None = None
+           built: Mapping[str, Method] | None = None, drop_isolated: bool = True
            ) -> tuple[dict[str, Method], dict[str, str]]:
     """The deblurring methods among ``names`` (those in ``built`` reused), and a note for each
     one that cannot run here."""
@@ -188,7 +188,7 @@ def _build(names: Sequence[str], n: int, weights: str | Path | None, *, device: 
         if name not in DEBLUR_METHODS or name in out:
             continue
         config = MethodConfig(name, n=n, weights=weights, device=device, threads=threads,
-                              precision=precision)
+                              precision=precision, drop_isolated=drop_isolated)
         why = unavailable(config)
         if why:
             skipped[name] = f"{name} skipped: {why}"
@@ -197,19 +197,19 @@ def _build(names: Sequence[str], n: int, weights: str | Path | None, *, device: 
     return out, skipped
 
 
-def _method_for(name: str, frame: EvalFrame, n: int, built: Mapping[str, Method]
-                ) -> Method | None:
+def _method_for(name: str, frame: EvalFrame, n: int, built: Mapping[str, Method],
+                drop_isolated: bool = True) -> Method | None:
     """The method behind an evaluation name for this frame; None for the blurry floor."""
     if name == BLURRY:
         return None
     if name == TRUE_C:
         if frame.contrast is None:
             raise InputError(f"frame {frame.name} stores no true contrast threshold")
-        return EdiMethod(n, frame.contrast, hot_pixels=True)
+        return EdiMethod(n, frame.contrast, hot_pixels=True, drop_isolated=drop_isolated)
     if name == TRUE_PATH:
         if frame.motion is None:
             raise InputError(f"frame {frame.name} stores no true camera path")
-        return TruePathMethod(n, frame.motion, hot_pixels=True)
+        return TruePathMethod(n, frame.motion, hot_pixels=True, drop_isolated=drop_isolated)
     return built[name]
 
 
@@ -225,9 +225,9 @@ def _run(method: Method | None, frame: EvalFrame, n: int) -> _Output:
     return _Output(res.frames, res.estimate.contrast, res.warnings)
 
 
-def _edi_contrast(frame: EvalFrame, n: int) -> float:
+def _edi_contrast(frame: EvalFrame, n: int, drop_isolated: bool = True) -> float:
     """EDI's automatic contrast for one frame, as ``EdiMethod`` settles it."""
-    edi = EdiMethod(n, None, hot_pixels=True)
+    edi = EdiMethod(n, None, hot_pixels=True, drop_isolated=drop_isolated)
     if frame.bins is not None:
         return float(edi.prepare(frame.blurry, frame.bins).contrast)
     return float(edi.prepare(frame.blurry, frame.events, frame.exposure).contrast)
@@ -326,6 +326,7 @@ def evaluate_dataset(
     lpips: bool | None = None,
     on_frame: Callable[[FrameOutputs], None] | None = None,
     precision: str = "auto",
+    drop_isolated: bool = True,
 ) -> DatasetReport:
     """Run the methods on one dataset and score them.
 
@@ -376,7 +377,8 @@ def evaluate_dataset(
         if TRUE_C in methods and not src.has_true_contrast:
             skipped[TRUE_C] = ("edi-true-c skipped: the data stores no true contrast "
                                "threshold (only simulated sets do)")
-        built, unable = _build(methods, n, weights, precision=precision, built=built)
+        built, unable = _build(methods, n, weights, precision=precision, built=built,
+                               drop_isolated=drop_isolated)
         skipped.update(unable)
         notes.extend(skipped.values())
         if not src.has_raw_events and any(built[m].needs.timing for m in methods if m in built):
@@ -397,7 +399,7 @@ def evaluate_dataset(
             runs: dict[str, tuple[_Output, float]] = {}
             for m in active:
                 t0 = time.perf_counter()
-                runs[m] = (_run(_method_for(m, frame, n, built), frame, n),
+                runs[m] = (_run(_method_for(m, frame, n, built, drop_isolated), frame, n),
                            time.perf_counter() - t0)
                 notes.extend(runs[m][0].warnings)
             counts = _counts(frame)
@@ -407,7 +409,7 @@ def evaluate_dataset(
             if ref_c is None and active:
                 edi = runs.get(EdiMethod.name)
                 ref_c = edi[0].contrast if edi is not None and edi[0].contrast is not None \
-                    else _edi_contrast(frame, n)
+                    else _edi_contrast(frame, n, drop_isolated)
             outputs = FrameOutputs(str(src.path), frame)
             for m, (out, seconds) in runs.items():
                 c = out.contrast if out.contrast is not None else ref_c
@@ -442,22 +444,25 @@ def evaluate(
     device: str = "auto",
     threads: int | None = None,
     precision: str = "auto",
+    drop_isolated: bool = True,
 ) -> EvalReport:
     """:func:`evaluate_dataset` over several datasets, building the methods once (weights on
     ``device``, with ``threads`` torch CPU threads, the network in ``precision``).
 
-    ``progress`` is called as ``progress(dataset_path, done, total)``.
+    ``progress`` is called as ``progress(dataset_path, done, total)``. ``drop_isolated``:
+    every method's EDI leaves out the events no neighbour corroborates
+    (:class:`~trmd_cli.methods.MethodConfig`), the true-c and true-path twins included.
     """
     methods = parse_methods(methods)
     built, skipped = _build(methods, n, weights, device=device, threads=threads,
-                            precision=precision)
+                            precision=precision, drop_isolated=drop_isolated)
     notes = list(skipped.values())
     reports = []
     for p in paths:
         cb = None if progress is None else (lambda d, t, _p=str(p): progress(_p, d, t))
         reports.append(evaluate_dataset(
             p, methods, n, limit, weights, cb, ground_truth=ground_truth, options=options,
-            built=built, lpips=lpips, on_frame=on_frame))
+            built=built, lpips=lpips, on_frame=on_frame, drop_isolated=drop_isolated))
     if lpips is not False and any(r.ground_truth for r in reports):
         ok, note = lpips_status()
         if not ok:

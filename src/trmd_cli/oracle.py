@@ -40,11 +40,12 @@ class TruePathMethod(MotionMethod):
                "motion estimate")
 
     def __init__(self, n: int = DEFAULT_N, motion: SampledMotion | None = None,
-                 contrast: float | None = None, hot_pixels: bool = True) -> None:
+                 contrast: float | None = None, hot_pixels: bool = True, *,
+                 drop_isolated: bool = True) -> None:
         if motion is None:
             raise InputError("the true-path method needs a camera path",
                              hint="evaluate a set made by `trmd simulate` from a still image")
-        super().__init__(n, contrast, hot_pixels, motion)
+        super().__init__(n, contrast, hot_pixels, motion, drop_isolated=drop_isolated)
 
     @classmethod
     def from_config(cls, config) -> TruePathMethod:

@@ -121,6 +121,19 @@ def test_edi_with_true_contrast_beats_blurry_on_clean_data(gt_h5):
         assert e.ssim_seq > b.ssim_seq
 
 
+def test_keep_isolated_reaches_every_edi_of_the_run(gt_h5):
+    """`--keep-isolated` gives the true-c twin (built per frame) and the estimating EDI (built
+    once) every event; by default they leave the isolated ones out, and score otherwise."""
+    both = {}
+    for flag in (True, False):
+        rep = evaluate_dataset(gt_h5, "edi-true-c,edi", n=N, limit=1, drop_isolated=flag)
+        both[flag] = [rep.method(m).frames[0].psnr_seq for m in ("edi-true-c", "edi")]
+    assert all(a != b for a, b in zip(both[True], both[False], strict=True)), both
+    r = run("eval", gt_h5, "--methods", "edi-true-c", "--limit", "1", "--keep-isolated")
+    assert r.exit_code == 0, r.output
+    assert f"{both[False][0]:.2f}" in r.output
+
+
 def test_edi_auto_contrast_beats_blurry(gt_h5):
     rep = evaluate_dataset(gt_h5, "blurry,edi", n=N, limit=1)
     (b,), (e,) = rep.method("blurry").frames, rep.method("edi").frames

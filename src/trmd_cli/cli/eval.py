@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from .boundary import err, guarded, progress_enabled, warn
+from .deblur import Isolated
 from .options import (
     Columns,
     Device,
@@ -65,6 +66,7 @@ def eval_command(
     device: Device = "auto",
     threads: Threads = None,
     precision: Precision = "auto",
+    drop_isolated: Isolated = True,
     time_unit: TimeUnit = None,
     columns: Columns = None,
     one_based: OneBased = False,
@@ -110,7 +112,7 @@ def eval_command(
         with progress:
             return evaluate(datasets, chosen, n, limit, weights, advance, ground_truth=gt,
                             options=options, on_frame=on_frame, device=device, threads=threads,
-                            precision=precision)
+                            precision=precision, drop_isolated=drop_isolated)
 
     if strip is None:
         report = run()
