@@ -2,12 +2,12 @@
 
 A moving edge fires a line of pixels within a short time of each other: each of its events has
 a neighbour that fired close in time. A noise event (background activity: leakage, shot noise)
-fires at one pixel, with none of its eight neighbours firing near it. In EDI every event
-multiplies its pixel's latent by ``exp(±c)`` for the rest of the exposure: at c = 0.45 an
-isolated event leaves a speck 1.6× too bright or too dark in half of the frames. Leaving out
-the events no neighbour corroborates (the background-activity filter of Delbruck 2008, the
-time taken in slices of the exposure) keeps EDI's latent at ``B`` there, which is right where
-nothing moved.
+fires at one pixel, with none of its eight neighbours firing near it. In EDI an event
+multiplies its pixel's latent by ``exp(±c)`` from its instant on, and the blur integral spreads
+the opposite correction over the whole exposure: at c = 0.45 an isolated event leaves a speck
+up to 1.6× too bright or too dark. Leaving out the events no neighbour corroborates (the
+background-activity filter of Delbruck 2008, the time taken in slices of the exposure) keeps
+EDI's latent at ``B`` there, which is right where nothing moved.
 
 Measured (``trmd eval``, 48 pinned frames, 20 ms exposures, DAVIS-like noise): EDI given the
 true c 29.54 / 27.95 → 29.85 / 28.25 dB (middle / sequence); slices of 1/8 and 1/32 of the

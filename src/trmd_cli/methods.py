@@ -141,6 +141,7 @@ class Prepared:
     Attributes:
         model: the window's events sorted per pixel (:class:`~trmd_cli.edi.EdiEvents`), or the
             binned twin (:class:`~trmd_cli.edi.EdiBins`) for binned data; ready for any c.
+            Without the hot pixels' events and, unless kept, the isolated ones.
         contrast: c, the log-intensity step of one event.
         estimated: c came from :func:`trmd_cli.threshold.search_contrast` (else it was given).
         reliable: False when the window held too few events to estimate c (a default was used).
@@ -366,7 +367,8 @@ class EdiMethod:
     precision = None
     #: what the method is, for evaluation reports
     summary = ("EDI: contrast estimated per frame (a set's samples are independent), hot "
-               "pixels ignored (binned data: events spread evenly within each bin)")
+               "pixels and isolated events ignored (binned data: events spread evenly within "
+               "each bin)")
 
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
                  hot_pixels: bool = True, *, recording: RecordingContrast | None = None,
