@@ -11,6 +11,7 @@ from trmd_cli.edi import PixelEvents
 from trmd_cli.events import Exposure, make_stream
 from trmd_cli.isolated import bins_without_isolated, corroborated, without_isolated
 from trmd_cli.methods import EdiMethod, window_model
+from trmd_cli.metrics import psnr
 
 W, H = 12, 10
 SPAN = Exposure(0, 1600)  # 16 slices of 100 µs
@@ -80,10 +81,6 @@ def test_bins_keep_a_count_whose_neighbour_fired_in_that_bin_or_the_next():
     assert out.dtype == bins.dtype and bins[0, 8, 1] == 1  # the input is left as it was
 
 
-def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(10 * np.log10(1.0 / np.mean((np.clip(a, 0, 1) - b) ** 2)))
-
-
 @pytest.fixture(scope="module")
 def noisy():
     """A moving texture seen by the simulator's DAVIS-like sensor (threshold mismatch, shot
@@ -103,8 +100,11 @@ def test_edi_frames_gain_when_isolated_events_are_dropped(noisy):
     inst = s.exposure.instants_us(3)
     kept = EdiMethod(3, s.contrast, drop_isolated=False)(s.blurry, s.events, s.exposure, inst)
     dropped = EdiMethod(3, s.contrast)(s.blurry, s.events, s.exposure, inst)
-    before = np.mean([_psnr(f, g) for f, g in zip(kept.frames, s.sharp, strict=True)])
-    after = np.mean([_psnr(f, g) for f, g in zip(dropped.frames, s.sharp, strict=True)])
+    # scored as `trmd eval` scores them: clipped to [0, 1]
+    before = np.mean([psnr(np.clip(f, 0, 1), g) for f, g in zip(kept.frames, s.sharp,
+                                                                 strict=True)])
+    after = np.mean([psnr(np.clip(f, 0, 1), g) for f, g in zip(dropped.frames, s.sharp,
+                                                                strict=True)])
     # measured 27.82 → 28.00 dB
     assert after > before + 0.1, (before, after)
 
