@@ -91,6 +91,22 @@ def test_auto_contrast_is_printed_and_recorded(pair, tmp_path):
     assert 0.1 < meta["contrast"] < 0.4
 
 
+def test_keep_isolated_is_recorded_and_changes_the_frames(pair, tmp_path):
+    """The run's meta says which events EDI left out; `--keep-isolated` keeps them all, and
+    the sample's isolated events then change some pixels of the frames."""
+    img, ev = pair
+    frames = {}
+    for flag in ("--drop-isolated", "--keep-isolated"):
+        out = tmp_path / flag
+        r = run(img, ev, "-o", out, "--contrast", "0.2", flag)
+        assert r.exit_code == 0, r.output
+        meta = json.loads((out / "meta.json").read_text())
+        assert meta["hot_pixels_ignored"] is True
+        assert meta["isolated_events_dropped"] is (flag == "--drop-isolated")
+        frames[flag] = read_image(out / "frame_000.png")
+    assert np.any(frames["--drop-isolated"] != frames["--keep-isolated"])
+
+
 def test_n_video_and_16_bit(pair, tmp_path):
     import imageio.v3 as iio
 
