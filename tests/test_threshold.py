@@ -14,6 +14,7 @@ from trmd_cli.threshold import (
     ContrastObjective,
     _minimise,
     estimate_contrast,
+    explained_share,
     search_contrast,
 )
 from trmd_cli.voxel import event_bins
@@ -186,3 +187,40 @@ def test_search_spends_nine_evaluations_on_a_frame(samples):
     s = samples[1]
     est = search_contrast(s.blurry, EdiEvents.build(s.events, s.exposure))
     assert est.reliable and est.evaluations == 9
+
+
+def test_explained_share_of_edis_frame_is_one_minus_its_energy(samples):
+    """The figure `trmd eval` reports, on EDI's middle frame, is the threshold energy's
+    complement at that frame's c, measured at mid-exposure alone (two code paths: the
+    objective takes logs of the fired pixels only)."""
+    s = samples[0]
+    model = EdiEvents.build(s.events, s.exposure)
+    obj = ContrastObjective.from_events(model, s.blurry, np.array([0.5]))
+    middle = model.latent(s.blurry, np.array([0.5]), s.contrast)[0]
+    near = np.abs(model.time - 0.5) <= 0.03  # the objective's window
+    counts = np.bincount(model.pix[near], weights=model.step[near],
+                         minlength=model.width * model.height).reshape(model.height, model.width)
+    assert explained_share(middle, counts) == pytest.approx(1.0 - obj(s.contrast), abs=1e-5)
+
+
+def test_explained_share_by_construction():
+    """Counts that are a fixed mix of the frame's central-difference log gradients are
+    explained whole; the frame blurred along x explains less of them; counts unrelated to the
+    frame hardly any; no counts: nan; a flat frame has no gradient to explain with."""
+    import cv2
+
+    rng = np.random.default_rng(4)
+    img = cv2.GaussianBlur(rng.uniform(0.1, 0.9, (96, 128)).astype(np.float32), (0, 0), 2)
+    log = np.log(img + 0.02).astype(np.float32)
+    diff = np.array([[-0.5, 0.0, 0.5]], np.float32)
+    gx = cv2.filter2D(log, -1, diff, borderType=cv2.BORDER_REFLECT_101)
+    gy = cv2.filter2D(log, -1, diff.T, borderType=cv2.BORDER_REFLECT_101)
+    counts = 40.0 * gx - 25.0 * gy
+    # (not exactly 1: at the borders the reflected difference image is not the difference of
+    # the reflected image, measured 0.991)
+    assert explained_share(img, counts) > 0.98
+    smeared = cv2.blur(img, (15, 1))
+    assert explained_share(smeared, counts) < explained_share(img, counts) - 0.2
+    assert explained_share(img, rng.normal(0, 1, img.shape)) < 0.1
+    assert np.isnan(explained_share(img, np.zeros_like(img)))
+    assert explained_share(np.full_like(img, 0.5), counts) == 0.0

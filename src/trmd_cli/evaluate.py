@@ -13,10 +13,12 @@ clipped to [0, 1] as users see them, are compared with the sharp frames:
 * SSIM (Wang et al. 2004: 11×11 Gaussian window, σ = 1.5, data range 1; :mod:`trmd_cli.metrics`),
   likewise for the middle frame and as the mean over the 2N+1 frames.
 
-Without ground truth (real recordings): sharpness and noise σ of the middle frame, and the event
-consistency of the 2N+1 frames (:mod:`trmd_cli.metrics`), judged with the contrast the method
-used (EDI), else the data's true c, else EDI's estimate for the frame — so that TRMD, and
-``blurry`` as the floor, are judged with a threshold too.
+Without ground truth (real recordings): sharpness and noise σ of the middle frame, the share of
+the events around mid-exposure its gradients explain
+(:func:`~trmd_cli.threshold.explained_share`), and the event consistency of the 2N+1 frames
+(:mod:`trmd_cli.metrics`), judged with the contrast the method used (EDI), else the data's true
+c, else EDI's estimate for the frame — so that TRMD, and ``blurry`` as the floor, are judged
+with a threshold too.
 
 Methods: ``blurry`` (the blurry frame repeated: the floor), every method of
 :mod:`trmd_cli.methods` (``edi``: contrast estimated per frame; ``trmd``: RE-Net +
@@ -57,6 +59,7 @@ from .read.base import Frame, ReadOptions
 from .read.dataset import EvalFrame, open_dataset
 from .read.folders import FrameWindow
 from .report import DatasetReport, EvalReport, FrameScore, MethodResult
+from .threshold import explained_share
 
 __all__ = [
     "METHODS",
@@ -125,7 +128,10 @@ def parse_methods(methods: str | Sequence[str]) -> tuple[str, ...]:
 #: how to read the figures of a set without ground truth (printed under its table, and in the
 #: JSON report): the consistency error cannot rank EDI, which is built from the same relation
 NO_GT_READING = (
-    "sharpness: read it next to noise σ (noise has gradients too). consistency err: how far "
+    "sharpness: read it next to noise σ (noise has gradients too). events explained: the "
+    "share of the events around mid-exposure that the middle frame's gradients account for, "
+    "block by block (edges where the events fired, at their scale; noise does not raise it, "
+    "and EDI, made from those events, is favoured). consistency err: how far "
     "log L(k+1) − log L(k) is from c × the events between the two instants; EDI builds its "
     "frames from exactly that relation, so it scores ≈ 0 by construction, and the blurry "
     "frame, which does not change, scores about c: it ranks methods that do not integrate "
@@ -142,6 +148,10 @@ def protocol() -> dict[str, Any]:
                  "sequence": "mean of the 2N+1 per-frame SSIMs"},
         "sharpness": "mean squared forward differences of the middle frame (gray)",
         "noise": "Immerkaer's white-noise sigma estimate of the middle frame (gray)",
+        "explained": "share of the signed events within +-0.03 of the exposure around the "
+                     "middle instant (binned: the middle bin) that per-16x16-block "
+                     "least-squares fits on the middle frame's log gradients explain "
+                     "(sigma 1.5 px on both)",
         "consistency": "mean |dlog L - c*E| over pixels with events, consecutive "
                        f"frames, intensities floored at {LOG_EPS}; c = the method's "
                        "own (EDI), else the true c, else EDI's estimate",
@@ -248,16 +258,34 @@ def _counts(frame: EvalFrame) -> tuple[np.ndarray, np.ndarray]:
     return interval_counts(frame.events, frame.instants_us)
 
 
+#: half-width of the window around the middle instant whose events the middle frame's
+#: gradients should explain, as a fraction of the exposure (the threshold estimate's)
+MIDDLE_WINDOW = 0.03
+
+
+def _middle_counts(frame: EvalFrame, n: int) -> np.ndarray:
+    """Signed counts of the events within ±:data:`MIDDLE_WINDOW` of the exposure around the
+    middle instant; binned data: the bin that holds mid-exposure."""
+    if frame.bins is not None:
+        m = frame.bins.shape[0]
+        return np.asarray(frame.bins[min(m // 2, m - 1)], np.float64)
+    assert frame.events is not None and frame.exposure is not None
+    mid, half = float(frame.instants_us[n]), MIDDLE_WINDOW * frame.exposure.duration_us
+    return interval_counts(frame.events, [mid - half, mid + half])[0][0]
+
+
 # --------------------------------------------------------------------------------------------
 # Scores
 
 
 def _score(frame: EvalFrame, latent: np.ndarray, n: int, *, truth: bool, contrast: float | None,
-           counts: tuple[np.ndarray, np.ndarray] | None, seconds: float, lpips=None
-           ) -> FrameScore:
+           counts: tuple[np.ndarray, np.ndarray] | None, seconds: float, lpips=None,
+           middle_counts: np.ndarray | None = None) -> FrameScore:
     out = np.clip(latent, 0.0, 1.0)
     figs: dict[str, Any] = {"sharpness": sharpness(out[n]), "noise": noise_sigma(out[n]),
                             "contrast": contrast, "seconds": seconds}
+    if middle_counts is not None:
+        figs["explained"] = explained_share(out[n], middle_counts)
     if counts is not None and contrast is not None:
         figs["consistency"] = consistency_from_counts(out, counts[0], contrast, counts[1])
     if truth and frame.truth is not None:
@@ -402,7 +430,7 @@ def evaluate_dataset(
                 runs[m] = (_run(_method_for(m, frame, n, built, drop_isolated), frame, n),
                            time.perf_counter() - t0)
                 notes.extend(runs[m][0].warnings)
-            counts = _counts(frame)
+            counts, middle = _counts(frame), _middle_counts(frame, n)
             # methods without a threshold of their own are judged with the data's true c,
             # else the c EDI's automatic estimate picks for this frame
             ref_c = frame.contrast
@@ -414,7 +442,7 @@ def evaluate_dataset(
             for m, (out, seconds) in runs.items():
                 c = out.contrast if out.contrast is not None else ref_c
                 score = _score(frame, out.latent, n, truth=use_gt, contrast=c, counts=counts,
-                               seconds=seconds, lpips=lpips_fn)
+                               seconds=seconds, lpips=lpips_fn, middle_counts=middle)
                 scores[m].append(score)
                 outputs.middle[m] = np.clip(out.latent[n], 0.0, 1.0)
                 outputs.scores[m] = score

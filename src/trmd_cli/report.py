@@ -15,7 +15,7 @@ __all__ = ["FIGURES", "FrameScore", "MethodResult", "DatasetReport", "EvalReport
 
 #: figures of :class:`FrameScore` that are averaged into means, in table order
 FIGURES = ("psnr_mid", "psnr_seq", "ssim_mid", "ssim_seq", "lpips_mid", "lpips_seq",
-           "sharpness", "noise", "consistency", "contrast", "seconds")
+           "sharpness", "noise", "explained", "consistency", "contrast", "seconds")
 
 
 @dataclass(frozen=True)
@@ -29,6 +29,8 @@ class FrameScore:
         lpips_mid, lpips_seq: LPIPS (AlexNet) when its weights are on disk, else None.
         sharpness: :func:`~trmd_cli.metrics.sharpness` of the middle output frame.
         noise: :func:`~trmd_cli.metrics.noise_sigma` of the middle output frame.
+        explained: :func:`~trmd_cli.threshold.explained_share` of the middle output frame and
+            the events around its instant.
         consistency: :func:`~trmd_cli.metrics.consistency` of the 2N+1 output frames with
             contrast ``contrast``.
         contrast: c the method used (EDI) or the reference c used for the consistency figure.
@@ -45,6 +47,7 @@ class FrameScore:
     lpips_seq: float | None = None
     sharpness: float | None = None
     noise: float | None = None
+    explained: float | None = None
     consistency: float | None = None
     contrast: float | None = None
     seconds: float = 0.0

@@ -36,6 +36,8 @@ __all__ = [
     "ContrastEstimate",
     "ContrastObjective",
     "RecordingContrast",
+    "block_fit",
+    "explained_share",
     "estimate_contrast",
     "search_contrast",
     "search_contrast_pooled",
@@ -165,11 +167,8 @@ class ContrastObjective:
                 self._moved_levels = [self.levels[k, m] for k, m in enumerate(moved)]
         else:
             self.levels = (twice / 2).astype(np.float32)
-        kernel = cv2.getGaussianKernel(int(2 * round(3 * _SIGMA) + 1), _SIGMA).astype(np.float32)
+        kernel, self._dgauss = _kernels()
         self._gauss = kernel
-        # derivative-of-Gaussian kernel: blur and central difference in one separable pass
-        d = np.array([-0.5, 0.0, 0.5], np.float32)
-        self._dgauss = np.convolve(kernel[:, 0], d, mode="same").astype(np.float32)
         self.counts = [
             np.ascontiguousarray(cv2.sepFilter2D(np.asarray(c, np.float32), -1, kernel, kernel)
                                  [: self.hb:2, : self.wb:2])
@@ -239,19 +238,7 @@ class ContrastObjective:
             # blurred gradients are band-limited: every second pixel carries the information
             gx = cv2.sepFilter2D(log_l, -1, self._dgauss, self._gauss)[: self.hb:2, : self.wb:2]
             gy = cv2.sepFilter2D(log_l, -1, self._gauss, self._dgauss)[: self.hb:2, : self.wb:2]
-            # contiguous planes, interleaved by cv2.merge: faster than strided products into
-            # the channels of one image, and the same numbers
-            gx, gy = np.ascontiguousarray(gx), np.ascontiguousarray(gy)
-            four = cv2.merge([gx * gx, gy * gy, gx * gy, gx * d])
-            sxx, syy, sxy, sxd = np.moveaxis(self._resized(four), -1, 0)
-            syd = self._resized(gy * d)
-            # per block: least-squares fit d ≈ vx·gx + vy·gy; "explained" = fitted Σd²
-            det = sxx * syy - sxy * sxy
-            ok = det > 1e-9 * (sxx + syy) ** 2 + 1e-30
-            det = np.where(ok, det, 1.0)
-            explained = np.where(ok, (syy * sxd * sxd - 2 * sxy * sxd * syd + sxx * syd * syd)
-                                 / det, 0.0)
-            num += float(explained.sum())
+            num += block_fit(gx, gy, d, self._blocks)
         return num
 
     def _resized(self, img: np.ndarray) -> np.ndarray:
@@ -270,6 +257,85 @@ class ContrastObjective:
             else:
                 out.extend(np.moveaxis(self._resized(np.dstack(group)), -1, 0))
         return out
+
+
+def _kernels() -> tuple[np.ndarray, np.ndarray]:
+    """The Gaussian (σ = :data:`_SIGMA`) as a column, and its derivative: blur and central
+    difference in one separable pass."""
+    import cv2
+
+    kernel = cv2.getGaussianKernel(int(2 * round(3 * _SIGMA) + 1), _SIGMA).astype(np.float32)
+    d = np.array([-0.5, 0.0, 0.5], np.float32)
+    return kernel, np.convolve(kernel[:, 0], d, mode="same").astype(np.float32)
+
+
+def explained_share(image: np.ndarray, counts: np.ndarray) -> float:
+    """How well a frame's edges sit where the events fired, at the events' scale: the share of
+    ``Σ D²`` that the consistency energy's per-block fits on this frame's log gradients explain
+    (1 − the energy, with the frame given instead of EDI's), ``D`` the signed event counts of a
+    short window around the frame's instant.
+
+    A blurry frame's gradients are smeared along the motion and explain little; noise has
+    gradients but none that follow the events, so unlike a gradient energy it does not raise
+    the figure. EDI builds its frames from the events themselves, which favours it.
+
+    Args:
+        image: (H, W) or (H, W, 3) [0, 1] intensity at the window's middle.
+        counts: (H, W) signed event counts of the window (the energy's windows are ±0.03 of
+            the exposure).
+    Returns:
+        In [0, 1]; nan where no event is left after smoothing or the frame holds no whole
+        16×16 block.
+    """
+    import cv2
+
+    gray = image if image.ndim == 2 else image @ np.array([0.299, 0.587, 0.114], np.float32)
+    h, w = gray.shape
+    hb, wb = (h // _BLOCK) * _BLOCK, (w // _BLOCK) * _BLOCK
+    if hb == 0 or wb == 0:
+        return float("nan")
+    blocks = (wb // _BLOCK, hb // _BLOCK)
+    kernel, dgauss = _kernels()
+    d = np.ascontiguousarray(cv2.sepFilter2D(np.asarray(counts, np.float32), -1, kernel,
+                                             kernel)[:hb:2, :wb:2])
+    total = float(cv2.resize(d * d, blocks, interpolation=cv2.INTER_AREA).astype(np.float64)
+                  .sum())
+    if total <= 0:
+        return float("nan")
+    log_l = np.log(np.clip(gray, 0.0, None).astype(np.float32) + np.float32(_EPS))
+    gx = cv2.sepFilter2D(log_l, -1, dgauss, kernel)[:hb:2, :wb:2]
+    gy = cv2.sepFilter2D(log_l, -1, kernel, dgauss)[:hb:2, :wb:2]
+    return block_fit(gx, gy, d, blocks) / total
+
+
+def block_fit(gx: np.ndarray, gy: np.ndarray, d: np.ndarray, blocks: tuple[int, int]) -> float:
+    """The part of ``Σ d²`` that per-block least-squares fits ``d ≈ vx·gx + vy·gy`` explain,
+    summed over the blocks (each block's fitted ``Σ d²``), up to the blocks' common area.
+
+    Args:
+        gx, gy, d: (h, w) float32 planes of whole blocks: the gradients of log intensity and
+            the signed event counts of a short window, each smoothed alike.
+        blocks: the number of blocks ``(across, down)`` (cv2's size order).
+    """
+    import cv2
+
+    def resized(img):
+        # block means by area resampling (exact for whole blocks, much faster than
+        # reshape-sum), up to four planes at once as the channels of one image
+        return cv2.resize(img, blocks, interpolation=cv2.INTER_AREA).astype(np.float64)
+
+    # contiguous planes, interleaved by cv2.merge: faster than strided products into the
+    # channels of one image, and the same numbers
+    gx, gy = np.ascontiguousarray(gx), np.ascontiguousarray(gy)
+    four = cv2.merge([gx * gx, gy * gy, gx * gy, gx * d])
+    sxx, syy, sxy, sxd = np.moveaxis(resized(four), -1, 0)
+    syd = resized(gy * d)
+    det = sxx * syy - sxy * sxy
+    ok = det > 1e-9 * (sxx + syy) ** 2 + 1e-30
+    det = np.where(ok, det, 1.0)
+    explained = np.where(ok, (syy * sxd * sxd - 2 * sxy * sxd * syd + sxx * syd * syd) / det,
+                         0.0)
+    return float(explained.sum())
 
 
 #: points of the coarse grid over the search range (log scale: steps of ×2.1 over 0.05–1)

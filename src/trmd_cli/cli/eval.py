@@ -33,6 +33,7 @@ _GT_COLUMNS = (("psnr_mid", "PSNR mid", "{:.2f}"), ("psnr_seq", "PSNR seq", "{:.
                ("ssim_mid", "SSIM mid", "{:.4f}"), ("ssim_seq", "SSIM seq", "{:.4f}"))
 _LPIPS_COLUMNS = (("lpips_mid", "LPIPS mid", "{:.4f}"), ("lpips_seq", "LPIPS seq", "{:.4f}"))
 _NOGT_COLUMNS = (("sharpness", "sharpness", "{:.5f}"), ("noise", "noise σ", "{:.4f}"),
+                 ("explained", "events explained", "{:.3f}"),
                  ("consistency", "consistency err", "{:.4f}"), ("contrast", "c", "{:.3f}"))
 
 
@@ -57,8 +58,9 @@ def eval_command(
         "--weights", help="RE-Net weights (.safetensors) for trmd; default: the shipped "
                           "weights (trmd is skipped when there are none).", readable=False)] = None,
     gt: Annotated[bool | None, typer.Option(
-        "--gt/--no-gt", help="Require ground truth, or judge without it (sharpness, noise, event "
-                             "consistency). Default: whichever each dataset allows.")] = None,
+        "--gt/--no-gt", help="Require ground truth, or judge without it (sharpness, noise, the "
+                             "events the middle frame explains, event consistency). Default: "
+                             "whichever each dataset allows.")] = None,
     strip: Annotated[Path | None, typer.Option(
         "--strip", help="Write a compare strip (blurry | methods | ground truth) per frame "
                         "into this folder.", readable=False)] = None,
@@ -76,7 +78,8 @@ def eval_command(
     topics: Topics = None,
 ) -> None:
     """Score deblurring methods: PSNR/SSIM against ground truth (middle frame and all 2N+1),
-    or sharpness, noise and event consistency on real recordings without it.
+    or sharpness, noise, the share of the events the middle frame explains and event
+    consistency on real recordings without it.
 
     On sets that `trmd simulate` made from a still image, `--methods motion,motion-true-path`
     puts the motion method beside itself given the true camera path (stored as frames/motion):
