@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
@@ -125,16 +126,10 @@ class ContrastObjective:
 
     def __init__(self, model, blurry: np.ndarray, instants: np.ndarray,
                  counts: list[np.ndarray]) -> None:
-        import cv2
-
-        self._cv2 = cv2
         self.model = model
-        gray = blurry if blurry.ndim == 2 else blurry @ np.array([0.299, 0.587, 0.114],
-                                                                 np.float32)
-        self.blurry = gray.astype(np.float32)
+        self.blurry = _gray(blurry)
         h, w = self.blurry.shape
-        # whole blocks only; even sizes so the half-resolution grid has whole blocks too
-        self.hb, self.wb = (h // _BLOCK) * _BLOCK, (w // _BLOCK) * _BLOCK
+        self.hb, self.wb = _whole_blocks(h, w)
         if self.hb == 0 or self.wb == 0:
             raise InputError(f"a {w}x{h} frame is too small to estimate the contrast threshold "
                              f"(needs at least {_BLOCK}x{_BLOCK})", hint="pass `contrast=C`")
@@ -167,13 +162,8 @@ class ContrastObjective:
                 self._moved_levels = [self.levels[k, m] for k, m in enumerate(moved)]
         else:
             self.levels = (twice / 2).astype(np.float32)
-        kernel, self._dgauss = _kernels()
-        self._gauss = kernel
-        self.counts = [
-            np.ascontiguousarray(cv2.sepFilter2D(np.asarray(c, np.float32), -1, kernel, kernel)
-                                 [: self.hb:2, : self.wb:2])
-            for c in counts]
-        self.total = float(sum(b.sum() for b in self._block_sums(*(c * c for c in self.counts))))
+        self.counts = [_smoothed(c, self.hb, self.wb) for c in counts]
+        self.total = float(sum(_block_means(c * c, self._blocks).sum() for c in self.counts))
         self.evaluations = 0
 
     @classmethod
@@ -207,7 +197,6 @@ class ContrastObjective:
 
     def explained(self, contrast: float) -> float:
         """The part of ``total`` (Σ D² over the blocks) the per-block fits explain at c."""
-        cv2 = self._cv2
         self.evaluations += 1
         if self._lookup:
             table = np.exp(np.float32(contrast / 2)
@@ -235,30 +224,23 @@ class ContrastObjective:
                 else:
                     lat = base * np.exp(np.float32(contrast) * self.levels[k])
                 log_l = np.log(lat + np.float32(_EPS))
-            # blurred gradients are band-limited: every second pixel carries the information
-            gx = cv2.sepFilter2D(log_l, -1, self._dgauss, self._gauss)[: self.hb:2, : self.wb:2]
-            gy = cv2.sepFilter2D(log_l, -1, self._gauss, self._dgauss)[: self.hb:2, : self.wb:2]
-            num += block_fit(gx, gy, d, self._blocks)
+            num += block_fit(*_gradients(log_l, self.hb, self.wb), d, self._blocks)
         return num
 
-    def _resized(self, img: np.ndarray) -> np.ndarray:
-        # block means by area resampling (exact for whole blocks, much faster than reshape-sum),
-        # up to four planes at once as the channels of one image (the same sums as one by
-        # one); the common factor (block area) cancels in the 2×2 solve and in the energy's ratio
-        return self._cv2.resize(img, self._blocks, interpolation=self._cv2.INTER_AREA
-                                ).astype(np.float64)
 
-    def _block_sums(self, *planes: np.ndarray) -> list[np.ndarray]:
-        out: list[np.ndarray] = []
-        for i in range(0, len(planes), 4):
-            group = planes[i:i + 4]
-            if len(group) == 1:
-                out.append(self._resized(group[0]))
-            else:
-                out.extend(np.moveaxis(self._resized(np.dstack(group)), -1, 0))
-        return out
+def _gray(image: np.ndarray) -> np.ndarray:
+    """(H, W) float32: the image, or a colour image's luma."""
+    gray = image if image.ndim == 2 else image @ np.array([0.299, 0.587, 0.114], np.float32)
+    return gray.astype(np.float32)
 
 
+def _whole_blocks(h: int, w: int) -> tuple[int, int]:
+    """The rows and columns of whole blocks (even, so that the half-resolution grid has whole
+    blocks too)."""
+    return (h // _BLOCK) * _BLOCK, (w // _BLOCK) * _BLOCK
+
+
+@cache
 def _kernels() -> tuple[np.ndarray, np.ndarray]:
     """The Gaussian (σ = :data:`_SIGMA`) as a column, and its derivative: blur and central
     difference in one separable pass."""
@@ -267,6 +249,35 @@ def _kernels() -> tuple[np.ndarray, np.ndarray]:
     kernel = cv2.getGaussianKernel(int(2 * round(3 * _SIGMA) + 1), _SIGMA).astype(np.float32)
     d = np.array([-0.5, 0.0, 0.5], np.float32)
     return kernel, np.convolve(kernel[:, 0], d, mode="same").astype(np.float32)
+
+
+
+def _smoothed(counts: np.ndarray, hb: int, wb: int) -> np.ndarray:
+    """Signed counts smoothed by the Gaussian, on the half-resolution grid of whole blocks."""
+    import cv2
+
+    gauss, _ = _kernels()
+    return np.ascontiguousarray(cv2.sepFilter2D(np.asarray(counts, np.float32), -1, gauss,
+                                                gauss)[:hb:2, :wb:2])
+
+
+def _gradients(log_l: np.ndarray, hb: int, wb: int) -> tuple[np.ndarray, np.ndarray]:
+    """The smoothed x and y gradients of a log-intensity image on the half-resolution grid:
+    blurred gradients are band-limited, every second pixel carries the information."""
+    import cv2
+
+    gauss, dgauss = _kernels()
+    return (cv2.sepFilter2D(log_l, -1, dgauss, gauss)[:hb:2, :wb:2],
+            cv2.sepFilter2D(log_l, -1, gauss, dgauss)[:hb:2, :wb:2])
+
+
+def _block_means(img: np.ndarray, blocks: tuple[int, int]) -> np.ndarray:
+    """Per-block means of ``img``'s planes (its channels, up to four at once) by area
+    resampling: exact for whole blocks, much faster than a reshape-sum. The common factor
+    (the block's area) cancels in the 2×2 solve and in the energy's ratio."""
+    import cv2
+
+    return cv2.resize(img, blocks, interpolation=cv2.INTER_AREA).astype(np.float64)
 
 
 def explained_share(image: np.ndarray, counts: np.ndarray) -> float:
@@ -287,25 +298,17 @@ def explained_share(image: np.ndarray, counts: np.ndarray) -> float:
         In [0, 1]; nan where no event is left after smoothing or the frame holds no whole
         16×16 block.
     """
-    import cv2
-
-    gray = image if image.ndim == 2 else image @ np.array([0.299, 0.587, 0.114], np.float32)
-    h, w = gray.shape
-    hb, wb = (h // _BLOCK) * _BLOCK, (w // _BLOCK) * _BLOCK
+    gray = _gray(image)
+    hb, wb = _whole_blocks(*gray.shape)
     if hb == 0 or wb == 0:
         return float("nan")
     blocks = (wb // _BLOCK, hb // _BLOCK)
-    kernel, dgauss = _kernels()
-    d = np.ascontiguousarray(cv2.sepFilter2D(np.asarray(counts, np.float32), -1, kernel,
-                                             kernel)[:hb:2, :wb:2])
-    total = float(cv2.resize(d * d, blocks, interpolation=cv2.INTER_AREA).astype(np.float64)
-                  .sum())
+    d = _smoothed(counts, hb, wb)
+    total = float(_block_means(d * d, blocks).sum())
     if total <= 0:
         return float("nan")
-    log_l = np.log(np.clip(gray, 0.0, None).astype(np.float32) + np.float32(_EPS))
-    gx = cv2.sepFilter2D(log_l, -1, dgauss, kernel)[:hb:2, :wb:2]
-    gy = cv2.sepFilter2D(log_l, -1, kernel, dgauss)[:hb:2, :wb:2]
-    return block_fit(gx, gy, d, blocks) / total
+    log_l = np.log(np.clip(gray, 0.0, None) + np.float32(_EPS))
+    return block_fit(*_gradients(log_l, hb, wb), d, blocks) / total
 
 
 def block_fit(gx: np.ndarray, gy: np.ndarray, d: np.ndarray, blocks: tuple[int, int]) -> float:
@@ -319,17 +322,12 @@ def block_fit(gx: np.ndarray, gy: np.ndarray, d: np.ndarray, blocks: tuple[int, 
     """
     import cv2
 
-    def resized(img):
-        # block means by area resampling (exact for whole blocks, much faster than
-        # reshape-sum), up to four planes at once as the channels of one image
-        return cv2.resize(img, blocks, interpolation=cv2.INTER_AREA).astype(np.float64)
-
     # contiguous planes, interleaved by cv2.merge: faster than strided products into the
     # channels of one image, and the same numbers
     gx, gy = np.ascontiguousarray(gx), np.ascontiguousarray(gy)
     four = cv2.merge([gx * gx, gy * gy, gx * gy, gx * d])
-    sxx, syy, sxy, sxd = np.moveaxis(resized(four), -1, 0)
-    syd = resized(gy * d)
+    sxx, syy, sxy, sxd = np.moveaxis(_block_means(four, blocks), -1, 0)
+    syd = _block_means(gy * d, blocks)
     det = sxx * syy - sxy * sxy
     ok = det > 1e-9 * (sxx + syy) ** 2 + 1e-30
     det = np.where(ok, det, 1.0)
