@@ -49,8 +49,8 @@ from .threads import RowBlocks, beside, product_threads, run_split
 
 __all__ = ["DeconvConfig", "ANCHOR_CONTRAST", "NOISE_SCALE", "BlurOperator", "deconvolve",
            "noise_level", "guard_weights", "Deconvolved", "data_weights", "agreement",
-           "tile_gains", "tile_score", "trust_score", "trusted_gain", "SPLIT_TRUST_PX",
-           "motion_deblur", "MotionDeblur",
+           "tile_gains", "tile_score", "trust_score", "FULL_TRUST_GAIN", "trusted_gain",
+           "SPLIT_TRUST_PX", "motion_deblur", "MotionDeblur",
            "explained", "change_of_log", "predicted_change", "change_agreement", "CHANGE_SIGMA_PX",
            "CHANGE_TOLERANCE", "fit_contrast", "FIT_MIN_PIXELS", "FIT_MIN_SHARE",
            "FIT_MIN_CORRELATION"]
@@ -639,10 +639,16 @@ def change_agreement(solved: Deconvolved, change: np.ndarray, contrast: float,
     return (1.0 - np.clip(2.0 * rejected, 0.0, 1.0)).astype(np.float32)
 
 
+#: the global contrast gain from which :func:`trust_score` trusts a motion whole (1.05, where
+#: trust begins, and the 0.05 over which it grows)
+FULL_TRUST_GAIN = 1.1
+
+
 def trust_score(confidence: float) -> float:
-    """How far the motion's global contrast gain lets it be trusted: 0 at 1.05, 1 from 1.1
-    (a small motion sharpens its events little even when exact: 1.13 along a true path that
-    moves the frame at most 3.3 px from the middle; the data and tile tests judge the rest)."""
+    """How far the motion's global contrast gain lets it be trusted: 0 at 1.05, 1 from
+    :data:`FULL_TRUST_GAIN` (a small motion sharpens its events little even when exact: 1.13
+    along a true path that moves the frame at most 3.3 px from the middle; the data and tile
+    tests judge the rest)."""
     return float(np.clip((confidence - 1.05) / 0.05, 0.0, 1.0))
 
 
@@ -653,18 +659,19 @@ SPLIT_TRUST_PX = 0.1
 
 
 def trusted_gain(motion, events, exposure, hot_mask: np.ndarray | None = None) -> float:
-    """The contrast gain an estimated ``motion`` is trusted as: its own, or full trust (1.1)
-    where the gain alone gives partial trust and its two halves of events agree within
-    :data:`SPLIT_TRUST_PX`. A small motion's gain is low even when its estimate is right to a
-    tenth of a pixel (pinned frame 6: 1.058 at 0.08 px); estimates 0.2–0.4 px off have gains
-    as low, but there the halves disagree (on few events the error is mostly their noise)."""
+    """The contrast gain an estimated ``motion`` is trusted as: its own, or
+    :data:`FULL_TRUST_GAIN` where the gain alone gives partial trust and its two halves of
+    events agree within :data:`SPLIT_TRUST_PX`. A small motion's gain is low even when its
+    estimate is right to a tenth of a pixel (pinned frame 6: 1.058 at 0.08 px); estimates
+    0.2–0.4 px off have gains as low, but there the halves disagree (on few events the error
+    is mostly their noise)."""
     from .motion import split_agreement
 
     gain = float(motion.confidence)
     if not 0.0 < trust_score(gain) < 1.0:
         return gain
     spread = split_agreement(events, exposure, motion, hot_mask)
-    return 1.1 if spread <= SPLIT_TRUST_PX else gain
+    return FULL_TRUST_GAIN if spread <= SPLIT_TRUST_PX else gain
 
 
 def tile_score(tile_gain: np.ndarray, width: int, height: int, tile: int = 16) -> np.ndarray:
