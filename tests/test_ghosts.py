@@ -23,9 +23,15 @@ def _moving_square(shift_per_step: int = 4) -> np.ndarray:
     return frames
 
 
-def test_a_double_image_is_replaced_by_what_the_events_report():
+def _truth_and_change() -> tuple[np.ndarray, np.ndarray]:
+    """The moving square and its exact events' change from the middle frame (noise-free
+    events, exact c)."""
     truth = _moving_square()
-    change = np.log(truth) - np.log(truth[N])  # noise-free events, exact c
+    return truth, np.log(truth) - np.log(truth[N])
+
+
+def test_a_double_image_is_replaced_by_what_the_events_report():
+    truth, change = _truth_and_change()
     # the network's ghost: every frame half its own square, half the middle frame's
     ghosted = 0.5 * truth + 0.5 * truth[N]
     out = without_ghosts(ghosted, change, N)
@@ -45,8 +51,7 @@ def test_a_double_image_is_replaced_by_what_the_events_report():
 
 def test_isolated_noise_events_leave_consistent_frames_as_they_are():
     rng = np.random.default_rng(3)
-    truth = _moving_square()
-    change = np.log(truth) - np.log(truth[N])
+    truth, change = _truth_and_change()
     noisy = change.copy()
     for k in range(2 * N + 1):
         if k == N:
@@ -59,8 +64,7 @@ def test_isolated_noise_events_leave_consistent_frames_as_they_are():
 
 
 def test_colour_frames_share_one_weight_per_pixel():
-    truth = _moving_square()
-    change = np.log(truth) - np.log(truth[N])
+    truth, change = _truth_and_change()
     ghosted = 0.5 * truth + 0.5 * truth[N]
     gains = np.array([1.0, 0.9, 0.8], np.float32)
     out = without_ghosts(ghosted[..., None] * gains, change, N)
