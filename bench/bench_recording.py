@@ -22,9 +22,10 @@ huge-page advice alone).
 ``--profile`` adds one pass without the overlap, each stage timed on its own (median over the
 frames, ms of wall time, and in brackets of the thread's CPU time, which other work on the
 machine does not inflate): the recording's threshold (its whole cost shared out over the
-frames), reading, the per-pixel sort, the hot-pixel mask, the EDI table, the
-threshold search, the voxels and their timing levels, the network's forward pass, the rest of
-the method (checks, reconstruction, conversions) and writing the result folder.
+frames), reading, the per-pixel sort, the hot-pixel mask, the isolated events left out, the
+EDI table, the threshold search, the voxels and their timing levels, the network's forward
+pass, the rest of the method (checks, reconstruction, conversions) and writing the result
+folder.
 """
 
 from __future__ import annotations
@@ -77,6 +78,7 @@ def profile(ins, est, config, tmp: Path) -> str:
     now: dict[str, float] = defaultdict(float)
     patches = [(getattr(methods, "PixelEvents", None), "build", "sort"),
                (methods, "hot_pixel_mask", "hot pixels"),
+               (methods, "without_isolated", "isolated"),
                (methods.EdiEvents, "build", "EDI table"),
                (methods, "search_contrast", "threshold"),
                (voxel, "scer_voxels", "voxels"), (voxel, "scer_levels", "levels")]
@@ -124,8 +126,8 @@ def profile(ins, est, config, tmp: Path) -> str:
             setattr(owner, name, value)
         if net is not None:
             del net.forward
-    order = ["recording c", "reading", "sort", "hot pixels", "EDI table", "threshold", "voxels",
-             "levels", "network", "rest of method", "writing"]
+    order = ["recording c", "reading", "sort", "hot pixels", "isolated", "EDI table",
+             "threshold", "voxels", "levels", "network", "rest of method", "writing"]
 
     def ms(key: str) -> float:
         return 1e3 * float(np.median(per_frame[key]))
