@@ -119,16 +119,16 @@ class Item:
         inputs: the paths given to ``open_inputs`` for it. folder: its sub-folder of the output
             (``""``: the output itself, when the run has one recording). frames: how many.
         meta: the head of its meta.json (and of each frame's).
-        contrast: its one estimated contrast threshold
-            (:class:`~trmd_cli.threshold.RecordingContrast`), settled when the plan is made so
-            that every process uses the same; None when not estimated over the recording.
+        settled: what was settled for it when the plan was made, so that every process uses
+            the same (:class:`~trmd_cli.deblur.Settled`: its one estimated contrast threshold,
+            its sensor's fixed pattern); None when nothing was.
     """
 
     inputs: tuple[str, ...]
     folder: str
     frames: int
     meta: dict = field(hash=False)
-    contrast: object = field(default=None, hash=False)
+    settled: object = field(default=None, hash=False)
 
 
 @dataclass(frozen=True)
@@ -207,6 +207,19 @@ def _plain(o):
     raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
+def pattern_meta(config: MethodConfig, pattern) -> dict:
+    """What meta.json says of the sensor's fixed pattern (a
+    :class:`~trmd_cli.fixed_pattern.FixedPattern` or None): removed, from which frames, or why
+    not."""
+    if not config.fixed_pattern:
+        return {"fixed_pattern": {"removed": False, "reason": "kept as asked "
+                                  "(`fixed_pattern=False`)"}}
+    if pattern is None:
+        return {"fixed_pattern": {"removed": False, "reason": "one frame: no pattern to tell "
+                                  "from the scene"}}
+    return {"fixed_pattern": pattern.meta()}
+
+
 def contrast_meta(config: MethodConfig, recording) -> dict:
     """What meta.json says of the contrast threshold's origin: ``contrast_mode`` "given",
     "recording" (one estimate, ``contrast_recording`` says from which frames) or "frame"
@@ -224,12 +237,14 @@ def contrast_meta(config: MethodConfig, recording) -> dict:
 
 
 def run_meta(ins, est, config: MethodConfig, offset_us: int, bit_depth: int,
-             recording=None) -> dict:
+             settled=None) -> dict:
     """The head of meta.json for a run on ``ins`` (:class:`~trmd_cli.read.inputs.Inputs`) by
-    ``est`` (a :class:`~trmd_cli.methods.Method`); ``recording``: the recording's estimated
-    c (:class:`~trmd_cli.threshold.RecordingContrast`), if one was settled."""
+    ``est`` (a :class:`~trmd_cli.methods.Method`); ``settled``: what was settled for the
+    recording (a :class:`~trmd_cli.deblur.Settled`), if anything."""
     from . import __version__
 
+    recording = None if settled is None else settled.contrast
+    pattern = None if settled is None else settled.pattern
     meta = {
         "tool": f"trmd {__version__}",
         "method": est.name,
@@ -241,6 +256,7 @@ def run_meta(ins, est, config: MethodConfig, offset_us: int, bit_depth: int,
         **contrast_meta(config, recording),
         "hot_pixels_ignored": config.hot_pixels,
         "isolated_events_dropped": config.drop_isolated,
+        **pattern_meta(config, pattern),
         "bit_depth": bit_depth,
     }
     if ins.binned:
@@ -341,17 +357,17 @@ def make_plan(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
 
     s = settings
     method = cache(lambda: make_method(s.config))  # its name, N, weights hash, precision
-    return Plan(plan_items(groups, folders, s, lambda ins, _, rec: run_meta(
-        ins, method(), s.config, s.offset_us, s.bit_depth, rec), warn,
+    return Plan(plan_items(groups, folders, s, lambda ins, _, done: run_meta(
+        ins, method(), s.config, s.offset_us, s.bit_depth, done), warn,
         settle=lambda ins, _: settled(method(), ins.source, s.config)), settings)
 
 
 def settled(method, source, config: MethodConfig):
-    """The recording's one estimated c for ``method`` (see
-    :func:`~trmd_cli.deblur.settle_recording`), or None."""
-    from .deblur import settle_recording
+    """What is settled for ``method`` over the recording ``source``: a
+    :class:`~trmd_cli.deblur.Settled` (see :func:`~trmd_cli.deblur.settle`)."""
+    from .deblur import settle
 
-    return settle_recording(method, source, config)[1]
+    return settle(method, source, config)[1]
 
 
 def plan_items(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
@@ -359,10 +375,10 @@ def plan_items(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
                warn: Callable[[str], None] = lambda _: None,
                settle: Callable[..., object] | None = None) -> tuple[Item, ...]:
     """Every recording of a new plan opened once: what its reader says given to ``warn``, it
-    checked to hold frames to share out, its contrast threshold settled by ``settle(ins,
-    path)`` (None: not estimated over the recording), its meta.json head from ``head(ins, path,
-    contrast)`` (``ins``: its ``Inputs``; ``path``: its first input, for messages; it may check
-    more and warn).
+    checked to hold frames to share out, what is settled over it by ``settle(ins, path)``
+    (a :class:`~trmd_cli.deblur.Settled`; None: nothing), its meta.json head from
+    ``head(ins, path, settled)`` (``ins``: its ``Inputs``; ``path``: its first input, for
+    messages; it may check more and warn).
 
     Raises:
         InputError: two recordings share a folder name; one is one image or holds no frame.
@@ -377,9 +393,9 @@ def plan_items(groups: Sequence[Sequence[str | Path]], folders: Sequence[str],
             for w in ins.warnings:
                 warn(w)
             check_shareable(ins, paths[0])
-            contrast = None if settle is None else settle(ins, paths[0])
+            done = None if settle is None else settle(ins, paths[0])
             items.append(Item(tuple(str(p) for p in paths), folder, len(ins.source),
-                              head(ins, paths[0], contrast), contrast))
+                              head(ins, paths[0], done), done))
     return tuple(items)
 
 
@@ -561,7 +577,7 @@ def run_share(plan: Plan, stage: Stage, share: Sequence[tuple[int, int]],
         if not positions:
             continue
         with open_item(item, s) as ins:
-            m = method() if item.contrast is None else method().for_recording(item.contrast)
+            m = method() if item.settled is None else item.settled.applied_to(method())
             results = deblur_frames(ins.source.subset(positions), m)
             for k, res in tally.deblurred(i, positions, results):
                 name = frame_folder_name(res.name, res.index)

@@ -8,9 +8,12 @@ Binned items (:class:`~trmd_cli.read.folders.BinnedWindow`: no event times) go t
 loop to the method's ``from_bins``; their instants are fractions of the exposure.
 :func:`binned_note` is the one line a run on them says.
 
-Before the loop, :func:`settle_recording` gives a method one contrast threshold for the whole
-recording (one sensor, one threshold), estimated on the frames of it that hold the most events:
-steadier than an estimate per frame, and not paid for again on every frame.
+Before the loop, :func:`settle_pattern` gives a method the sensor's fixed pattern to remove
+from every frame (:mod:`trmd_cli.fixed_pattern`), and :func:`settle_recording` one contrast
+threshold for the whole recording (one sensor, one threshold), estimated on the frames of it
+that hold the most events: steadier than an estimate per frame, and not paid for again on every
+frame. Both read the same frames, spread over the recording, which the loop then does not read
+again.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numpy as np
 from .edi import check_blurry
 from .errors import InputError
 from .events import Exposure
+from .fixed_pattern import FixedPattern, estimate_fixed_pattern
 from .methods import Estimate, Method, MethodConfig, window_model
 from .read.folders import BinnedSource, BinnedWindow, FrameWindow
 from .threads import map_shared
@@ -35,13 +39,21 @@ from .threshold import (
 )
 
 __all__ = ["FrameResult", "ContrastNotes", "deblur_frames", "exposure_instants", "binned_note",
-           "recording_contrast", "settle_recording", "recording_line", "RECORDING_FRAMES",
+           "recording_contrast", "settle_recording", "recording_line", "recording_pattern",
+           "settle_pattern", "pattern_line", "pattern_from", "candidates_of", "Settled", "settle",
+           "RECORDING_FRAMES",
            "RECORDING_CANDIDATES"]
 
 #: frames a recording's contrast threshold is estimated from: those with the most events
 RECORDING_FRAMES = 3
-#: the candidates for them: at most this many frames spread evenly over the recording
+#: the candidates for them (and the frames the fixed pattern is estimated from): at most this
+#: many frames spread evenly over the recording
 RECORDING_CANDIDATES = 16
+
+
+def candidates_of(n: int, candidates: int) -> list[int]:
+    """Positions of at most ``candidates`` frames spread evenly over ``n``."""
+    return sorted({int(round(p)) for p in np.linspace(0, n - 1, min(n, candidates))})
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,7 +155,8 @@ def deblur_frames(source: Iterable[FrameWindow | BinnedWindow], method: Method, 
 def recording_contrast(source: Sequence, *, hot_pixels: bool = True, drop_isolated: bool = True,
                        frames: int = RECORDING_FRAMES,
                        candidates: int = RECORDING_CANDIDATES,
-                       share_instants: bool = True) -> RecordingContrast | None:
+                       share_instants: bool = True,
+                       pattern: FixedPattern | None = None) -> RecordingContrast | None:
     """One contrast threshold for a recording: the consistency energy of
     :mod:`trmd_cli.threshold` pooled over the ``frames`` frames with the most events among
     ``candidates`` spread evenly over it (ties: the earlier frame), minimised as one.
@@ -162,6 +175,7 @@ def recording_contrast(source: Sequence, *, hot_pixels: bool = True, drop_isolat
         share_instants: the frames share out the energy's instants (frame i of n takes every
             n-th from the i-th), so that an evaluation costs what one frame's does; else each
             frame is measured at all of them.
+        pattern: the sensor's fixed pattern, removed from the frames as the method will.
     Returns:
         The estimate, or None when no candidate holds :data:`~trmd_cli.threshold.MIN_EVENTS`
         events (each frame then settles its own c, as a lone frame does).
@@ -171,7 +185,7 @@ def recording_contrast(source: Sequence, *, hot_pixels: bool = True, drop_isolat
     n = len(source)
     if n == 0:
         return None
-    positions = sorted({int(round(p)) for p in np.linspace(0, n - 1, min(n, candidates))})
+    positions = candidates_of(n, candidates)
     kept: list[tuple[int, int, FrameWindow | BinnedWindow]] = []
     # (the windows read here are kept for the deblurring pass, which then reads them once)
     for pos, item in zip(positions, source.subset(positions, keep=True), strict=True):
@@ -188,7 +202,7 @@ def recording_contrast(source: Sequence, *, hot_pixels: bool = True, drop_isolat
     step = len(kept) if share_instants else 1
     def objective(numbered):
         i, (_, _, item) = numbered
-        return _objective(item, hot_pixels, drop_isolated, INSTANTS[i % step::step])
+        return _objective(item, hot_pixels, drop_isolated, INSTANTS[i % step::step], pattern)
 
     # the frames' objectives (sorting, tables and filters of 10⁴–10⁵ events each) on the
     # process's threads
@@ -211,39 +225,128 @@ def _count(item: FrameWindow | BinnedWindow) -> int:
     return len(item.events.slice(exposure.start_us, exposure.end_us + 1))
 
 
-def _objective(item: FrameWindow | BinnedWindow, hot_pixels: bool, drop_isolated: bool,
-               instants: np.ndarray) -> ContrastObjective | None:
-    """The threshold's objective for one item; None when, hot pixels left out, it holds too
-    few events to estimate from (or none near the instants the energy is measured at)."""
+def _item_blurry(item: FrameWindow | BinnedWindow) -> np.ndarray:
+    """An item's blurry frame as the loop gives it to a method: checked against its events'
+    size, float32, clipped to [0, 1]."""
     frame = item.frame
+    h, w = item.bins.shape[1:] if isinstance(item, BinnedWindow) else \
+        (item.events.height, item.events.width)
+    return _in_range(check_blurry(frame.image, w, h, frame.name), frame)[0]
+
+
+def _objective(item: FrameWindow | BinnedWindow, hot_pixels: bool, drop_isolated: bool,
+               instants: np.ndarray, pattern: FixedPattern | None = None
+               ) -> ContrastObjective | None:
+    """The threshold's objective for one item (its frame without ``pattern``); None when, hot
+    pixels left out, it holds too few events to estimate from (or none near the instants the
+    energy is measured at)."""
+    blurry = _item_blurry(item)
+    if pattern is not None:
+        blurry = pattern.removed_from(blurry)
     if isinstance(item, BinnedWindow):
-        bins = item.bins
-        blurry = check_blurry(frame.image, bins.shape[2], bins.shape[1], frame.name)
-        model, _, _ = window_model(bins, None, False, drop_isolated)
-        objective = ContrastObjective.from_bins(model, _in_range(blurry, frame)[0], instants)
+        model, _, _ = window_model(item.bins, None, False, drop_isolated)
+        objective = ContrastObjective.from_bins(model, blurry, instants)
     else:
-        events = item.events
-        blurry = check_blurry(frame.image, events.width, events.height, frame.name)
-        model, _, _ = window_model(events, frame.exposure, hot_pixels, drop_isolated)
+        model, _, _ = window_model(item.events, item.frame.exposure, hot_pixels, drop_isolated)
         if model.count < MIN_EVENTS:
             return None
-        objective = ContrastObjective.from_events(model, _in_range(blurry, frame)[0], instants)
+        objective = ContrastObjective.from_events(model, blurry, instants)
     return objective if objective.total > 0 else None
 
 
-def settle_recording(method: Method, source: Sequence, config: MethodConfig
+def recording_pattern(source: Sequence, candidates: int = RECORDING_CANDIDATES
+                      ) -> FixedPattern:
+    """The sensor's fixed pattern (:func:`~trmd_cli.fixed_pattern.estimate_fixed_pattern`)
+    from at most ``candidates`` frames spread evenly over ``source`` (the frames the
+    recording's threshold chooses among; their images only, no events). Which frames are
+    used depends on the recording only."""
+    return pattern_from(source.subset(candidates_of(len(source), candidates)).frames(),
+                        source.width, source.height)
+
+
+def pattern_from(frames: Iterable, width: int, height: int) -> FixedPattern:
+    """:func:`~trmd_cli.fixed_pattern.estimate_fixed_pattern` on ``frames`` (each with its
+    ``image``, ``name`` and ``note``, as :class:`~trmd_cli.read.base.Frame`), each checked
+    against the ``width`` × ``height`` sensor and clipped as the loop hands it to a method."""
+    images, names = [], []
+    for frame in frames:
+        images.append(_in_range(check_blurry(frame.image, width, height, frame.name),
+                                frame)[0])
+        names.append(frame.name)
+    return estimate_fixed_pattern(images, names)
+
+
+def settle_pattern(method: Method, source: Sequence, config: MethodConfig
+                   ) -> tuple[Method, FixedPattern | None]:
+    """``method`` removing the recording's fixed pattern from every frame when ``config``
+    asks for it (``fixed_pattern``) and the recording shows one; else ``method`` unchanged.
+    Also gives the estimate, removed or not (None: not asked for, or a source of one frame)."""
+    if not config.fixed_pattern or len(source) < 2:
+        return method, None
+    pattern = recording_pattern(source)
+    return (method.for_pattern(pattern) if pattern.removed else method), pattern
+
+
+def pattern_line(pattern: FixedPattern) -> str:
+    """What a run says about the sensor's fixed pattern."""
+    if pattern.removed:
+        return (f"removed the sensor's fixed pattern (RMS {pattern.rms * 255:.1f} grey levels "
+                f"of 255), estimated from {len(pattern.frames)} frames (`fixed_pattern=False` "
+                "keeps it)")
+    return f"no fixed pattern removed: {pattern.reason}"
+
+
+def settle_recording(method: Method, source: Sequence, config: MethodConfig,
+                     pattern: FixedPattern | None = None
                      ) -> tuple[Method, RecordingContrast | None]:
     """``method`` with one estimated c for the whole recording ``source`` when ``config``
     asks for it (c not given, ``contrast_scope="recording"``) and the method uses c; else
     ``method`` unchanged. Also gives the estimate (None: not made, or no frame held enough
-    events — every frame then settles its own c; a source of one frame settles its own)."""
+    events — every frame then settles its own c; a source of one frame settles its own).
+    ``pattern``: the fixed pattern the method removes (:func:`settle_pattern`), removed from
+    the frames the threshold is measured on too."""
     if config.contrast is not None or config.contrast_scope != "recording" \
             or not method.needs.contrast or len(source) < 2:
         # (one frame: its own estimate is the recording's)
         return method, None
     rec = recording_contrast(source, hot_pixels=config.hot_pixels,
-                             drop_isolated=config.drop_isolated)
+                             drop_isolated=config.drop_isolated,
+                             pattern=pattern if pattern is not None and pattern.removed else None)
     return (method, None) if rec is None else (method.for_recording(rec), rec)
+
+
+@dataclass(frozen=True, eq=False)
+class Settled:
+    """What a run settles once for a recording before its frames (every process of a split
+    run gets the same).
+
+    Attributes:
+        contrast: its one estimated c (None: not estimated over the recording).
+        pattern: its sensor's fixed pattern, removed or with the reason it is not (None: not
+            asked for, or one frame).
+    """
+
+    contrast: RecordingContrast | None = None
+    pattern: FixedPattern | None = None
+
+    def applied_to(self, method: Method) -> Method:
+        """``method`` with what was settled: the pattern removed, the recording's c."""
+        if self.pattern is not None and self.pattern.removed:
+            method = method.for_pattern(self.pattern)
+        return method if self.contrast is None else method.for_recording(self.contrast)
+
+    def lines(self) -> list[str]:
+        """What a run says about them."""
+        return ([] if self.pattern is None else [pattern_line(self.pattern)]) + \
+            ([] if self.contrast is None else [recording_line(self.contrast)])
+
+
+def settle(method: Method, source: Sequence, config: MethodConfig) -> tuple[Method, Settled]:
+    """:func:`settle_pattern`, then :func:`settle_recording` on the frames without the
+    pattern: the method to run over ``source`` and what was settled."""
+    method, pattern = settle_pattern(method, source, config)
+    method, rec = settle_recording(method, source, config, pattern)
+    return method, Settled(rec, pattern)
 
 
 def recording_line(rec: RecordingContrast) -> str:

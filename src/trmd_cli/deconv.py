@@ -83,6 +83,14 @@ class DeconvConfig:
         noise_ref: B's noise σ (intensity) at which ``penalty`` and ``anchor`` are given;
             :func:`motion_deblur` scales them by B's measured σ over this (:meth:`for_noise`).
             None: as given.
+        noise: B's noise σ (intensity) to scale by and to judge the re-blur residual against
+            (:func:`data_weights`); None: measured on B (:func:`noise_level`). Given for a
+            frame whose fixed pattern was removed (:mod:`trmd_cli.fixed_pattern`), whose σ
+            falls to a third on esl-cups: the σ measured after the removal lets the solver's
+            rings through there (events explained 0.820 with the pattern kept → 0.793), the
+            σ as recorded holds back what simulated pans gain (motion method, three pans:
+            −0.36 / −0.01 / +0.02 dB against +0.44 / +0.45 / +0.02). Halfway in variance:
+            +0.13 / +0.34 / +0.38 dB, and 0.837 on esl-cups.
     """
 
     penalty: float = 2e-4
@@ -95,6 +103,7 @@ class DeconvConfig:
     outlier: tuple[float, float] | None = (1.3, 2.2)
     window_px: int = 9
     noise_ref: float | None = 0.005
+    noise: float | None = None
 
     def for_noise(self, sigma: float) -> DeconvConfig:
         """These settings for a blurry frame whose noise σ is ``sigma`` (intensity, e.g.
@@ -372,7 +381,7 @@ RESIDUAL_FLOOR = 0.003
 
 
 def data_weights(residual: np.ndarray, blurry: np.ndarray, outlier: tuple[float, float],
-                 window_px: int = 9) -> np.ndarray:
+                 window_px: int = 9, noise: float | None = None) -> np.ndarray:
     """How much each pixel of B should count, from the re-blur residual ``A(L) − B``.
 
     The residual's local RMS (a ``window_px`` square) is compared with the frame's residual
@@ -386,6 +395,7 @@ def data_weights(residual: np.ndarray, blurry: np.ndarray, outlier: tuple[float,
     Args:
         residual, blurry: (H, W[, 3]) float32 (intensity).
         outlier: (lo, hi), ratios of the local RMS to ``s``.
+        noise: B's noise σ to cap ``s`` with (None: :func:`noise_level` of B).
     Returns:
         (H, W) float32 in [0, 1].
     """
@@ -397,7 +407,7 @@ def data_weights(residual: np.ndarray, blurry: np.ndarray, outlier: tuple[float,
     local = cv2.blur(np.ascontiguousarray(r2, np.float32), (k, k),
                      borderType=cv2.BORDER_REFLECT)
     floor = math.sqrt(max(float(np.percentile(local, 25)), 0.0))
-    s = max(min(floor, noise_level(blurry)), RESIDUAL_FLOOR)
+    s = max(min(floor, noise_level(blurry) if noise is None else noise), RESIDUAL_FLOOR)
     lo, hi = outlier
     rho = np.sqrt(np.maximum(local, 0.0)) / s
     return np.clip((hi - rho) / (hi - lo), 0.0, 1.0).astype(np.float32)
@@ -453,7 +463,7 @@ def deconvolve(blurry: np.ndarray, motion, config: DeconvConfig | None = None,
             re = op.apply_np(x.reshape(hp * wp, c)).reshape(h, w, c)
             res = re - b.reshape(h, w, c)
             d = data_weights(res[..., 0] if c == 1 else res, blurry, cfg.outlier,
-                             cfg.window_px).reshape(h * w, 1)
+                             cfg.window_px, cfg.noise).reshape(h * w, 1)
             if stop is not None and stop(k, d.reshape(h, w)):
                 solved = k
                 break
@@ -494,7 +504,8 @@ def deconvolve(blurry: np.ndarray, motion, config: DeconvConfig | None = None,
     re = re[..., 0] if blurry.ndim == 2 else re
     if reweight and solved == rounds:
         # the weights the final frame earns (the last round used the previous frame's)
-        d = data_weights(re - blurry, blurry, cfg.outlier, cfg.window_px).reshape(h * w, 1)
+        d = data_weights(re - blurry, blurry, cfg.outlier, cfg.window_px,
+                         cfg.noise).reshape(h * w, 1)
     middle = torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1)))
     return Deconvolved(op, middle, np.ascontiguousarray(re, dtype=np.float32),
                        np.ascontiguousarray(d.reshape(h, w), dtype=np.float32), solved)
@@ -877,7 +888,7 @@ def _motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: 
                             (f"only {motion.events} events in the exposure ({who} needs ≥ "
                              f"{MIN_EVENTS}): used EDI",))
     cfg = (DeconvConfig() if config is None else config).for_contrast(contrast)
-    cfg = cfg.for_noise(noise_level(blurry))
+    cfg = cfg.for_noise(noise_level(blurry) if cfg.noise is None else cfg.noise)
 
     fitted = None
     tried = False  # the background's deconvolution was tried and fell back to EDI

@@ -41,8 +41,9 @@ from typing import Any
 
 import numpy as np
 
-from .deblur import deblur_frames
+from .deblur import deblur_frames, pattern_line
 from .errors import InputError
+from .fixed_pattern import FixedPattern
 from .methods import METHODS as DEBLUR_METHODS
 from .methods import REGISTRY, EdiMethod, Method, MethodConfig, make_method, unavailable
 from .metrics import (
@@ -223,6 +224,24 @@ def _method_for(name: str, frame: EvalFrame, n: int, built: Mapping[str, Method]
     return built[name]
 
 
+def _pattern(src, total: int) -> FixedPattern | None:
+    """The sensor's fixed pattern over the ``total`` frames evaluated, estimated as ``trmd
+    deblur`` estimates a recording's (:func:`~trmd_cli.deblur.recording_pattern`); None for
+    one frame."""
+    from .deblur import RECORDING_CANDIDATES, candidates_of, pattern_from
+
+    if total < 2:
+        return None
+    return pattern_from(src.blurry_frames(candidates_of(total, RECORDING_CANDIDATES)),
+                        src.width, src.height)
+
+
+def _without(method: Method | None, pattern: FixedPattern | None) -> Method | None:
+    """``method`` removing ``pattern`` (a removed one) from every frame; the blurry floor
+    (None) is the input as it is."""
+    return method if method is None or pattern is None else method.for_pattern(pattern)
+
+
 def _run(method: Method | None, frame: EvalFrame, n: int) -> _Output:
     """One method on one frame as ``trmd deblur`` runs it; binned data through ``from_bins``."""
     if method is None:
@@ -235,9 +254,10 @@ def _run(method: Method | None, frame: EvalFrame, n: int) -> _Output:
     return _Output(res.frames, res.estimate.contrast, res.warnings)
 
 
-def _edi_contrast(frame: EvalFrame, n: int, drop_isolated: bool = True) -> float:
+def _edi_contrast(frame: EvalFrame, n: int, drop_isolated: bool = True,
+                  pattern: FixedPattern | None = None) -> float:
     """EDI's automatic contrast for one frame, as ``EdiMethod`` settles it."""
-    edi = EdiMethod(n, None, hot_pixels=True, drop_isolated=drop_isolated)
+    edi = _without(EdiMethod(n, None, hot_pixels=True, drop_isolated=drop_isolated), pattern)
     if frame.bins is not None:
         return float(edi.prepare(frame.blurry, frame.bins).contrast)
     return float(edi.prepare(frame.blurry, frame.events, frame.exposure).contrast)
@@ -355,6 +375,7 @@ def evaluate_dataset(
     on_frame: Callable[[FrameOutputs], None] | None = None,
     precision: str = "auto",
     drop_isolated: bool = True,
+    fixed_pattern: bool = True,
 ) -> DatasetReport:
     """Run the methods on one dataset and score them.
 
@@ -375,6 +396,9 @@ def evaluate_dataset(
         on_frame: called with each frame's :class:`FrameOutputs` (compare strips).
         precision: the network's arithmetic when weights are loaded here
             (:mod:`trmd_cli.precision`).
+        fixed_pattern: every method but the blurry floor gets the frames without the sensor's
+            fixed pattern, estimated over the frames evaluated as ``trmd deblur`` estimates a
+            recording's (a set of unrelated samples shows none: nothing is removed).
     Returns:
         :class:`~trmd_cli.report.DatasetReport`.
     Raises:
@@ -422,12 +446,17 @@ def evaluate_dataset(
         active = [m for m in methods if m not in skipped]
         scores: dict[str, list[FrameScore]] = {m: [] for m in methods}
         total = len(src) if limit is None else min(limit, len(src))
+        pattern = _pattern(src, total) if fixed_pattern and active else None
+        if pattern is not None:
+            notes.append(f"{src.path.name}: {pattern_line(pattern)}")
+            pattern = pattern if pattern.removed else None
         done = 0
         for frame in src.frames(limit):
             runs: dict[str, tuple[_Output, float]] = {}
             for m in active:
                 t0 = time.perf_counter()
-                runs[m] = (_run(_method_for(m, frame, n, built, drop_isolated), frame, n),
+                runs[m] = (_run(_without(_method_for(m, frame, n, built, drop_isolated),
+                                         pattern), frame, n),
                            time.perf_counter() - t0)
                 notes.extend(runs[m][0].warnings)
             counts, middle = _counts(frame), _middle_counts(frame, n)
@@ -437,7 +466,7 @@ def evaluate_dataset(
             if ref_c is None and active:
                 edi = runs.get(EdiMethod.name)
                 ref_c = edi[0].contrast if edi is not None and edi[0].contrast is not None \
-                    else _edi_contrast(frame, n, drop_isolated)
+                    else _edi_contrast(frame, n, drop_isolated, pattern)
             outputs = FrameOutputs(str(src.path), frame)
             for m, (out, seconds) in runs.items():
                 c = out.contrast if out.contrast is not None else ref_c
@@ -473,6 +502,7 @@ def evaluate(
     threads: int | None = None,
     precision: str = "auto",
     drop_isolated: bool = True,
+    fixed_pattern: bool = True,
 ) -> EvalReport:
     """:func:`evaluate_dataset` over several datasets, building the methods once (weights on
     ``device``, with ``threads`` torch CPU threads, the network in ``precision``).
@@ -480,6 +510,7 @@ def evaluate(
     ``progress`` is called as ``progress(dataset_path, done, total)``. ``drop_isolated``:
     every method's EDI leaves out the events no neighbour corroborates
     (:class:`~trmd_cli.methods.MethodConfig`), the true-c and true-path twins included.
+    ``fixed_pattern``: see :func:`evaluate_dataset`.
     """
     methods = parse_methods(methods)
     built, skipped = _build(methods, n, weights, device=device, threads=threads,
@@ -490,7 +521,8 @@ def evaluate(
         cb = None if progress is None else (lambda d, t, _p=str(p): progress(_p, d, t))
         reports.append(evaluate_dataset(
             p, methods, n, limit, weights, cb, ground_truth=ground_truth, options=options,
-            built=built, lpips=lpips, on_frame=on_frame, drop_isolated=drop_isolated))
+            built=built, lpips=lpips, on_frame=on_frame, drop_isolated=drop_isolated,
+            fixed_pattern=fixed_pattern))
     if lpips is not False and any(r.ground_truth for r in reports):
         ok, note = lpips_status()
         if not ok:

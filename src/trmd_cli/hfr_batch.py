@@ -159,25 +159,27 @@ def timestamps_header(binned: bool) -> str:
 
 
 def hfr_meta(ins, est, *, per_exposure: int | None, fps: float, fill_gaps: bool,
-             offset_us: int, config: MethodConfig, recording=None) -> dict:
+             offset_us: int, config: MethodConfig, settled=None) -> dict:
     """meta.json of a frames output, with ``contrast`` and ``frames`` still to fill in (their
     places kept).
 
     Args:
         ins: the :class:`~trmd_cli.read.inputs.Inputs`. est: the method run on them.
         per_exposure: frames per exposure (None: 2N+1). fps: playback rate. fill_gaps: asked
-            for. offset_us: exposure shift, µs. config, recording: the method's settings and
-            the recording's one estimated c (None: not settled), for where c came from.
+            for. offset_us: exposure shift, µs. config, settled: the method's settings and
+            what was settled for the recording (a :class:`~trmd_cli.deblur.Settled`; None:
+            nothing), for where c came from and whether the fixed pattern was removed.
     """
     from . import __version__
-    from .batch import binned_meta, contrast_meta
+    from .batch import binned_meta, contrast_meta, pattern_meta
 
     meta = {
         "tool": f"trmd {__version__}", "method": est.name, "n": est.n,
         "weights_hash": est.weights_hash, "inputs": ins.paths, "precision": est.precision,
         "per_exposure": per_exposure or 2 * est.n + 1, "fps": fps, "fill_gaps": fill_gaps,
         "time_offset_us": offset_us, "contrast": None, "frames": None,
-        **contrast_meta(config, recording)}
+        **contrast_meta(config, None if settled is None else settled.contrast),
+        **pattern_meta(config, None if settled is None else settled.pattern)}
     if ins.binned:
         del meta["time_offset_us"]
         meta.update(fill_gaps=False, **binned_meta(ins.source))
@@ -204,13 +206,13 @@ def make_hfr_plan(groups: Sequence[Sequence[str | Path]], folders: Sequence[str]
     s = settings
     method = _methods(s)
 
-    def head(ins, path, recording) -> dict:
+    def head(ins, path, settled) -> dict:
         est = method(ins.binned)  # its name, N, weights hash, precision
         if ins.binned:
             warn(binned_note(ins.source, est, stream=True))
         return hfr_meta(ins, est, per_exposure=s.per_exposure, fps=s.fps,
                         fill_gaps=s.fill_gaps, offset_us=s.offset_us,
-                        config=s.config_for(ins.binned), recording=recording)
+                        config=s.config_for(ins.binned), settled=settled)
 
     def settle(ins, path):
         # before any frame is read for the threshold
@@ -256,8 +258,8 @@ def run_hfr_share(plan: HfrPlan, stage: Stage, share: Sequence[Unit],
         with open_item(item, s) as ins:
             if exposures:
                 m = method(binned)
-                if item.contrast is not None:
-                    m = m.for_recording(item.contrast)
+                if item.settled is not None:
+                    m = item.settled.applied_to(m)
                 results = deblur_frames(ins.source.subset(exposures), m,
                                         per_exposure=s.per_exposure)
                 for k, res in tally.deblurred(r, exposures, results):

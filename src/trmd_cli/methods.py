@@ -10,7 +10,10 @@ a :class:`Method`:
   :class:`Prepared`;
 * ``__call__`` runs it on raw events (instants in µs), ``from_bins`` on binned data (signed
   counts of M equal bins spanning the exposure, no event times: GOPRO-style voxels, LEDVDI's
-  bins), both returning an :class:`Estimate`.
+  bins), both returning an :class:`Estimate`;
+* ``for_recording`` and ``for_pattern`` give the same method (its loaded parts shared) with
+  what was settled over a whole recording: one c, the sensor's fixed pattern
+  (:mod:`trmd_cli.fixed_pattern`), removed from every blurry frame it is given.
 
 :func:`make_method` builds the method a :class:`MethodConfig` names from :data:`REGISTRY`; a new
 method is a class with a ``from_config`` class method and one entry there — ``trmd deblur``,
@@ -20,6 +23,7 @@ when the default changes.
 
 from __future__ import annotations
 
+import math
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +34,7 @@ import numpy as np
 from .edi import EdiBins, EdiEvents, PixelEvents, check_blurry, hot_pixel_mask, propagate
 from .errors import InputError, ShapeError
 from .events import EventStream, Exposure
+from .fixed_pattern import FixedPattern
 from .isolated import bins_without_isolated, without_isolated
 from .precision import PRECISIONS
 from .threshold import RecordingContrast, search_contrast
@@ -49,6 +54,7 @@ __all__ = [
     "MotionMethod",
     "FusedMethod",
     "motion_frames",
+    "pattern_free",
     "REGISTRY",
     "make_method",
     "unavailable",
@@ -81,6 +87,10 @@ class MethodConfig:
         drop_isolated: leave out of EDI's model the events that no neighbouring pixel
             corroborates (background activity, :mod:`trmd_cli.isolated`): EDI's frames, c's
             estimate and every method's use of them. The networks' voxels keep every event.
+        fixed_pattern: the drivers that run a whole recording remove the APS sensor's fixed
+            pattern, estimated over its frames, from every blurry frame
+            (:func:`trmd_cli.deblur.settle_pattern`; where the scene did not move or the frames
+            share no pattern, nothing is removed).
         weights, device, threads, precision: TRMD only (see ``TrmdEstimator.load``;
             ``precision="auto"`` runs the network in bfloat16 on CPUs that compute it natively
             — on the pinned validation set within 0.003 dB of float32).
@@ -95,6 +105,7 @@ class MethodConfig:
     contrast_scope: str = "recording"
     hot_pixels: bool = True
     drop_isolated: bool = True
+    fixed_pattern: bool = True
     weights: str | Path | None = None
     device: str = "auto"
     threads: int | None = None
@@ -231,6 +242,11 @@ class Method(Protocol):
         shared, not copied)."""
         ...
 
+    def for_pattern(self, pattern: FixedPattern | None) -> Method:
+        """The method removing a recording's fixed pattern from every blurry frame (None: none;
+        the loaded parts shared, not copied)."""
+        ...
+
 
 def _contrast_note(est) -> str | None:
     """What to tell the user about an estimated c (a :class:`ContrastEstimate`)."""
@@ -267,6 +283,30 @@ def _with_edi(method, edi: EdiMethod):
     return out
 
 
+def _with_pattern(method, pattern: FixedPattern | None):
+    """A shallow copy of ``method`` (loaded parts shared) that removes ``pattern`` from every
+    blurry frame it is given (None, or a pattern not removed: none)."""
+    import copy
+
+    out = copy.copy(method)
+    out.pattern = pattern if pattern is not None and pattern.removed else None
+    return out
+
+
+def pattern_free(pattern: FixedPattern | None, blurry: np.ndarray
+                  ) -> tuple[np.ndarray, float | None]:
+    """``(B without the pattern, the noise σ its deconvolution is weighed by)``; without a
+    pattern ``(B, None)`` (σ measured on B as usual). That σ lies halfway, in variance,
+    between B's as recorded and B's without the pattern (see
+    :attr:`~trmd_cli.deconv.DeconvConfig.noise`)."""
+    if pattern is None:
+        return blurry, None
+    from .deconv import noise_level
+
+    out = pattern.removed_from(blurry)
+    return out, math.sqrt(0.5 * (noise_level(blurry) ** 2 + noise_level(out) ** 2))
+
+
 def _grid_match(exposure: Exposure, n: int, instants_us) -> tuple[np.ndarray, np.ndarray,
                                                                     np.ndarray, np.ndarray]:
     """``(grid, inst, nearest, exact)``: the 2N+1 instants (µs), the wanted ones (None = the
@@ -298,14 +338,17 @@ def _at_instants(frames: np.ndarray, events: EventStream, grid: np.ndarray, inst
 
 
 def motion_frames(blurry: np.ndarray, events: EventStream, exposure: Exposure,
-                  fractions: np.ndarray, prep: Prepared, motion=None):
+                  fractions: np.ndarray, prep: Prepared, motion=None,
+                  noise: float | None = None):
     """The motion method on a settled exposure: ``(edi, res)`` — EDI's frames at
     ``fractions`` of the exposure and the guarded deconvolution
     (:class:`~trmd_cli.deconv.MotionDeblur`), both with ``prep``'s c and hot pixels; where
     that c was estimated, the EDI frames inside ``res`` have the c the deconvolution implies
     (its ``fallback_contrast``).
-    ``motion``: a path to use instead of the estimate, its evidence already measured."""
-    from .deconv import motion_deblur
+    ``motion``: a path to use instead of the estimate, its evidence already measured.
+    ``noise``: B's noise σ as recorded, when ``blurry`` had its fixed pattern removed (None:
+    measured on ``blurry``)."""
+    from .deconv import DeconvConfig, motion_deblur
 
     # EDI at the instants and at mid-exposure in one pass (one blur integral, not two)
     lat = prep.model.latent(blurry, np.append(fractions, 0.5), prep.contrast)
@@ -313,6 +356,7 @@ def motion_frames(blurry: np.ndarray, events: EventStream, exposure: Exposure,
     # an estimated c is refitted to the deconvolution for EDI's frames; a given one is kept
     refit = (lambda c: prep.model.latent(blurry, fractions, c)) if prep.estimated else None
     res = motion_deblur(blurry, events, exposure, fractions, edi, mid, prep.hot,
+                        config=None if noise is None else DeconvConfig(noise=noise),
                         motion=motion, contrast=prep.contrast, edi_at=refit)
     return edi, res
 
@@ -370,6 +414,9 @@ class EdiMethod:
                "pixels and isolated events ignored (binned data: events spread evenly within "
                "each bin)")
 
+    #: the fixed pattern removed from every blurry frame (:meth:`for_pattern`), or None
+    pattern: FixedPattern | None = None
+
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
                  hot_pixels: bool = True, *, recording: RecordingContrast | None = None,
                  drop_isolated: bool = True) -> None:
@@ -406,11 +453,16 @@ class EdiMethod:
     def for_recording(self, recording: RecordingContrast) -> EdiMethod:
         """This method with the recording's estimated c for every frame (reported as
         estimated, with no note per frame: the run says once where it came from)."""
-        return EdiMethod(self.n, recording.contrast, self.hot_pixels, recording=recording,
-                         drop_isolated=self.drop_isolated)
+        return _with_pattern(EdiMethod(self.n, recording.contrast, self.hot_pixels,
+                                       recording=recording, drop_isolated=self.drop_isolated),
+                             self.pattern)
+
+    def for_pattern(self, pattern: FixedPattern | None) -> EdiMethod:
+        """This method removing ``pattern`` from every blurry frame."""
+        return _with_pattern(self, pattern)
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
-        b = check_blurry(blurry, events.width, events.height)
+        b, _ = pattern_free(self.pattern, check_blurry(blurry, events.width, events.height))
         inst = exposure.instants_us(self.n) if instants_us is None else \
             np.asarray(instants_us, np.float64)
         prep = self.prepare(b, events, exposure)
@@ -422,7 +474,7 @@ class EdiMethod:
         """EDI with the log intensity changing linearly within each bin (see
         :class:`~trmd_cli.edi.EdiBins`)."""
         bins = _check_bins(bins)
-        b = check_blurry(blurry, bins.shape[2], bins.shape[1])
+        b, _ = pattern_free(self.pattern, check_blurry(blurry, bins.shape[2], bins.shape[1]))
         fr = _bin_grid(self.n) if fractions is None else np.asarray(fractions, np.float64)
         prep = self.prepare(b, bins)
         return Estimate(prep.model.latent(b, fr, prep.contrast), fr, prep.contrast,
@@ -439,6 +491,8 @@ class TrmdMethod:
     #: known before the weights are read; an instance's ``needs`` also says what they take
     needs = MethodNeeds(weights=True)
     summary = "RE-Net residuals + two-stage reconstruction, as `trmd deblur --method trmd`"
+    #: the fixed pattern removed from every blurry frame (:meth:`for_pattern`), or None
+    pattern: FixedPattern | None = None
 
     def __init__(self, n: int | None = None, weights: str | Path | None = None,
                  device: str = "auto", threads: int | None = None,
@@ -472,8 +526,12 @@ class TrmdMethod:
         """This method (the same loaded parts) with the recording's c for every frame."""
         return _with_edi(self, self._edi.for_recording(recording))
 
+    def for_pattern(self, pattern: FixedPattern | None):
+        """This method (the same loaded parts) removing ``pattern`` from every blurry frame."""
+        return _with_pattern(self, pattern)
+
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
-        b = check_blurry(blurry, events.width, events.height)
+        b, _ = pattern_free(self.pattern, check_blurry(blurry, events.width, events.height))
         grid, inst, nearest, exact = _grid_match(exposure, self.n, instants_us)
         # in-between instants are propagated from the nearest frame with c: settle it for them
         settle = self.needs.contrast or not exact.all()
@@ -514,7 +572,7 @@ class TrmdMethod:
         from .voxel import resample_bins, scer_from_bins
 
         bins = _check_bins(bins)
-        b = check_blurry(blurry, bins.shape[2], bins.shape[1])
+        b, _ = pattern_free(self.pattern, check_blurry(blurry, bins.shape[2], bins.shape[1]))
         grid = _bin_grid(self.n)
         if fractions is not None and not (len(fractions) == len(grid)
                                           and np.allclose(fractions, grid)):
@@ -550,6 +608,8 @@ class MotionMethod:
 
     #: put before each of the motion's notes (a given motion says which one it is)
     note_prefix = ""
+    #: the fixed pattern removed from every blurry frame (:meth:`for_pattern`), or None
+    pattern: FixedPattern | None = None
 
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
                  hot_pixels: bool = True, motion=None, *, drop_isolated: bool = True) -> None:
@@ -573,15 +633,20 @@ class MotionMethod:
         """This method (the same loaded parts) with the recording's c for every frame."""
         return _with_edi(self, self._edi.for_recording(recording))
 
+    def for_pattern(self, pattern: FixedPattern | None):
+        """This method removing ``pattern`` from every blurry frame."""
+        return _with_pattern(self, pattern)
+
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
-        b = check_blurry(blurry, events.width, events.height)
+        b, noise = pattern_free(self.pattern,
+                                 check_blurry(blurry, events.width, events.height))
         inst = exposure.instants_us(self.n) if instants_us is None else \
             np.asarray(instants_us, np.float64)
         prep = self.prepare(b, events, exposure)
         fr = (inst - exposure.start_us) / exposure.duration_us
         given = None if self.motion is None else \
             self.motion.with_evidence(events, exposure, prep.hot)
-        _, res = motion_frames(b, events, exposure, fr, prep, given)
+        _, res = motion_frames(b, events, exposure, fr, prep, given, noise)
         if given is None:
             # from the second frame on, the tiles' votes are begun in a helper process while
             # this one estimates the global motion (:mod:`trmd_cli.helper_process`): started
@@ -610,6 +675,8 @@ class FusedMethod:
     needs = MethodNeeds(contrast=True, weights=True)
     summary = ("TRMD and the motion method fused by a small trained network; contrast "
                "estimated per frame as EDI's")
+    #: the fixed pattern removed from every blurry frame (:meth:`for_pattern`), or None
+    pattern: FixedPattern | None = None
 
     def __init__(self, n: int | None = None, weights: str | Path | None = None,
                  device: str = "auto", threads: int | None = None,
@@ -664,6 +731,10 @@ class FusedMethod:
         out._trmd = self._trmd.for_recording(recording)
         return out
 
+    def for_pattern(self, pattern: FixedPattern | None):
+        """This method (the same loaded parts) removing ``pattern`` from every blurry frame."""
+        return _with_pattern(self, pattern)
+
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         import torch
 
@@ -671,7 +742,8 @@ class FusedMethod:
         from .models.fusion import MAX_CONTRAST, fusion_planes
         from .precision import autocast
 
-        b = check_blurry(blurry, events.width, events.height)
+        b, noise = pattern_free(self.pattern,
+                                 check_blurry(blurry, events.width, events.height))
         grid, inst, nearest, exact = _grid_match(exposure, self.n, instants_us)
         prep = self.prepare(b, events, exposure)
         # the motion method's own fallbacks ("used EDI") are not this method's: where the
@@ -680,11 +752,11 @@ class FusedMethod:
         if prep.contrast > MAX_CONTRAST:
             # the network is not run, so neither is TRMD, which only it reads
             fr = np.arange(2 * self.n + 1) / (2 * self.n)
-            frames = motion_frames(b, events, exposure, fr, prep)[1].frames
+            frames = motion_frames(b, events, exposure, fr, prep, noise=noise)[1].frames
             notes = (f"c = {prep.contrast:.2f} is beyond the fusion network's sensors "
                      f"(c ≤ {MAX_CONTRAST}): the motion method's frames",)
         else:
-            ins = fusion_inputs(b, events, exposure, self._trmd, self.n, prep)
+            ins = fusion_inputs(b, events, exposure, self._trmd, self.n, prep, noise)
             planes = fusion_planes(ins.motion, ins.trmd, ins.edi, ins.blurry, ins.weight,
                                    ins.events, self.n)
             with torch.inference_mode():
@@ -710,7 +782,9 @@ class FusedMethod:
         event times to estimate a motion from."""
         from dataclasses import replace
 
-        est = self._trmd.from_bins(blurry, bins, fractions)
+        bins = _check_bins(bins)
+        b, _ = pattern_free(self.pattern, check_blurry(blurry, bins.shape[2], bins.shape[1]))
+        est = self._trmd.from_bins(b, bins, fractions)
         return replace(est, notes=(*est.notes, "binned events have no event times to estimate "
                                    "the motion from: TRMD's frames"))
 

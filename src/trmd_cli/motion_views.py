@@ -62,7 +62,8 @@ def displacement_field(motion, width: int, height: int) -> np.ndarray:
 
 def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
                  contrast: float | None = None, hot_pixels: bool = True,
-                 recording=None, drop_isolated: bool = True) -> MotionViews:
+                 recording=None, drop_isolated: bool = True,
+                 pattern=None) -> MotionViews:
     """Estimate the exposure's motion and run the motion method's guard, as
     ``trmd deblur --method motion`` does.
 
@@ -75,17 +76,19 @@ def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
         recording: the recording's estimated c (a
             :class:`~trmd_cli.threshold.RecordingContrast`), used instead of ``contrast``; as
             an estimate, it is refitted for EDI's frames as ``trmd deblur`` does.
+        pattern: the recording's fixed pattern (a removed
+            :class:`~trmd_cli.fixed_pattern.FixedPattern`), taken out of the frame first.
     """
     from .edi import check_blurry
-    from .methods import EdiMethod, motion_frames
+    from .methods import EdiMethod, motion_frames, pattern_free
     from .motion.cmax import warped_image, window_points
 
-    b = check_blurry(blurry, events.width, events.height)
+    b, noise = pattern_free(pattern, check_blurry(blurry, events.width, events.height))
     edi = EdiMethod(3, contrast, hot_pixels, drop_isolated=drop_isolated)
     if recording is not None:
         edi = edi.for_recording(recording)
     prep = edi.prepare(b, events, exposure)
-    _, res = motion_frames(b, events, exposure, np.array([0.5]), prep)
+    _, res = motion_frames(b, events, exposure, np.array([0.5]), prep, noise=noise)
     w, h = events.width, events.height
     x, y, u = window_points(events, exposure, prep.hot)
     before = warped_image(GlobalMotion(), x, y, u, w, h)

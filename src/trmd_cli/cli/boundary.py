@@ -62,6 +62,7 @@ FLAGS: dict[str, str | tuple[str, str]] = {
     "limit": "--limit",
     "hot_pixels": ("--hot-pixels", "--keep-hot-pixels"),
     "drop_isolated": ("--drop-isolated", "--keep-isolated"),
+    "fixed_pattern": ("--remove-pattern", "--keep-pattern"),
     "init_weights": "--init-weights",
     "interval_us": "--frame-interval-ms",
     "max_gap_frames": "--max-gap-frames",

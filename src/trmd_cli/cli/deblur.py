@@ -70,6 +70,12 @@ Isolated = Annotated[bool, typer.Option(
          "other methods) the events no neighbouring pixel corroborates within 1/16 of the "
          "exposure: the sensor's background activity, which EDI turns into speckle (default "
          "on; the networks' inputs keep every event).")]
+Pattern = Annotated[bool, typer.Option(
+    "--remove-pattern/--keep-pattern",
+    help="Remove the APS sensor's fixed pattern (each pixel's own offset, the same in every "
+         "frame) from the blurry frames before deblurring: estimated over up to 16 of the "
+         "recording's frames, and only where the scene moves between them and they agree on "
+         "one (default on; a single frame or a still camera keeps its frames as they are).")]
 BitDepth = Annotated[int, typer.Option("--bit-depth", help="PNG bit depth: 8 or 16.")]
 Jobs = Annotated[str, typer.Option(
     "--jobs", "-j", help="Worker processes on this machine, each on its share of the frames "
@@ -127,7 +133,7 @@ def choose_method(method: str | None, weights: Path | None, default: str) -> str
 def method_config(method: str | None, weights: Path | None, n: int | None, contrast: str,
                   hot_pixels: bool, device: str, threads: int | None, bit_depth: int,
                   precision: str = "auto", settle_contrast: bool = False,
-                  drop_isolated: bool = True):
+                  drop_isolated: bool = True, fixed_pattern: bool = True):
     """The options deblur and hfr share, checked and turned into a ``MethodConfig``."""
     from ..errors import InputError
     from ..methods import DEFAULT_METHOD, MethodConfig
@@ -135,7 +141,8 @@ def method_config(method: str | None, weights: Path | None, n: int | None, contr
     config = MethodConfig(method=choose_method(method, weights, DEFAULT_METHOD), n=n,
                           contrast=parse_contrast(contrast),
                           contrast_scope=contrast_scope(contrast), hot_pixels=hot_pixels,
-                          drop_isolated=drop_isolated, weights=weights, device=device,
+                          drop_isolated=drop_isolated, fixed_pattern=fixed_pattern,
+                          weights=weights, device=device,
                           threads=threads, precision=precision,
                           settle_contrast=settle_contrast)
     if bit_depth not in (8, 16):
@@ -163,6 +170,7 @@ def deblur(
     bit_depth: BitDepth = 8,
     hot_pixels: HotPixels = True,
     drop_isolated: Isolated = True,
+    remove_pattern: Pattern = True,
     weights: Weights = None,
     device: Device = "auto",
     threads: Threads = None,
@@ -196,7 +204,7 @@ def deblur(
         run_meta,
         staged,
     )
-    from ..deblur import ContrastNotes, binned_note, deblur_frames, settle_recording
+    from ..deblur import ContrastNotes, binned_note, deblur_frames, settle
     from ..errors import InputError
     from ..methods import make_method
     from ..overlap import ahead
@@ -211,7 +219,8 @@ def deblur(
         raise InputError(f"deblur takes one or two inputs, got {len(inputs)}",
                          hint="for several images use a frames folder, or `trmd hfr`")
     config = method_config(method, weights, n, contrast, hot_pixels, device, threads,
-                           bit_depth, precision, drop_isolated=drop_isolated)
+                           bit_depth, precision, drop_isolated=drop_isolated,
+                           fixed_pattern=remove_pattern)
     if video is not None and not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 10")
     offset = parse_duration_us(time_offset) if time_offset else 0
@@ -240,7 +249,7 @@ def deblur(
         if run.main:
             meta = run.plan.items[0].meta
             _report(run.summary, meta["method"], meta["n"], output, None, False,
-                    [it.contrast for it in run.plan.items])
+                    [it.settled for it in run.plan.items])
             if len(run.plan.items) > 1:
                 typer.echo(f"  from {len(run.plan.items)} recordings, one folder each")
         return
@@ -259,8 +268,8 @@ def deblur(
     with open_inputs(inputs, opts, exposure=exposure, offset_us=offset) as ins:
         for w in ins.warnings:
             warn(w)
-        est, rec = settle_recording(make_method(config), ins.source, config)
-        meta = run_meta(ins, est, config, offset, bit_depth, rec)
+        est, settled = settle(make_method(config), ins.source, config)
+        meta = run_meta(ins, est, config, offset, bit_depth, settled)
         said = [binned_note(ins.source, est)] if ins.binned else []
         summary: list[dict] = []
         notes = ContrastNotes()
@@ -299,7 +308,7 @@ def deblur(
 
     for line in [*said, *notes.lines()]:
         warn(line)
-    _report(summary, est.name, est.n, output, video, ins.single, [rec])
+    _report(summary, est.name, est.n, output, video, ins.single, [settled])
 
 
 @contextlib.contextmanager
@@ -316,14 +325,13 @@ def progress_bar(label: str, total: int, shown: bool = True) -> Iterator[Callabl
 
 def _report(summary: list[dict], method: str, n: int, output: Path, video: Path | None,
             single: bool, recordings: Sequence) -> None:
-    """``recordings``: each recording's one estimated c (a ``RecordingContrast``) or None."""
+    """``recordings``: what was settled for each recording (a ``Settled``) or None."""
     import numpy as np
 
-    from ..deblur import recording_line
-
-    settled = [r for r in recordings if r is not None]
-    for rec in settled:
-        typer.echo(as_flags(recording_line(rec)))
+    for done in recordings:
+        for line in [] if done is None else done.lines():
+            typer.echo(as_flags(line))
+    settled = [d for d in recordings if d is not None and d.contrast is not None]
     used = [s["contrast"] for s in summary if s["contrast"] is not None]
     auto = any(s["contrast_estimated"] for s in summary)
     if used and len(settled) < len(recordings):

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from .boundary import err, guarded, progress_enabled, warn
-from .deblur import Isolated
+from .deblur import Isolated, Pattern
 from .options import (
     Columns,
     Device,
@@ -69,6 +69,7 @@ def eval_command(
     threads: Threads = None,
     precision: Precision = "auto",
     drop_isolated: Isolated = True,
+    remove_pattern: Pattern = True,
     time_unit: TimeUnit = None,
     columns: Columns = None,
     one_based: OneBased = False,
@@ -115,7 +116,8 @@ def eval_command(
         with progress:
             return evaluate(datasets, chosen, n, limit, weights, advance, ground_truth=gt,
                             options=options, on_frame=on_frame, device=device, threads=threads,
-                            precision=precision, drop_isolated=drop_isolated)
+                            precision=precision, drop_isolated=drop_isolated,
+                            fixed_pattern=remove_pattern)
 
     if strip is None:
         report = run()

@@ -37,6 +37,7 @@ from .deblur import (
     Isolated,
     Method,
     NOpt,
+    Pattern,
     TimeOffset,
     Weights,
     method_config,
@@ -104,6 +105,7 @@ def hfr(
     bit_depth: BitDepth = 8,
     hot_pixels: HotPixels = True,
     drop_isolated: Isolated = True,
+    remove_pattern: Pattern = True,
     weights: Weights = None,
     device: Device = "auto",
     threads: Threads = None,
@@ -129,7 +131,7 @@ def hfr(
     one process file for file (on other thread counts the trmd and fused methods' network may
     round a few pixels to the next grey level)."""
     from ..batch import choose_jobs, count_work, ranks_from_env, recordings_in, staged
-    from ..deblur import ContrastNotes, binned_note, deblur_frames, settle_recording
+    from ..deblur import ContrastNotes, binned_note, deblur_frames, settle
     from ..errors import InputError
     from ..hfr import check_time_order, hfr_stream, timestamp_row
     from ..hfr_batch import OUTPUT_KINDS, hfr_meta, timestamps_header
@@ -156,7 +158,7 @@ def hfr(
     # the gaps are filled by event integration, which needs c even where the method does not
     config = method_config(method, weights, n, contrast, hot_pixels, device, threads,
                            bit_depth, precision, settle_contrast=fill_gaps,
-                           drop_isolated=drop_isolated)
+                           drop_isolated=drop_isolated, fixed_pattern=remove_pattern)
     if not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 30")
     offset = parse_duration_us(time_offset) if time_offset else 0
@@ -199,7 +201,7 @@ def hfr(
                 warn(CAPPED_NOTE)
             _report(output, done.exposure, done.gap, done.contrasts, done.clipped,
                     config.contrast, fps, meta["method"], meta["n"], len(run.plan.items),
-                    [it.contrast for it in run.plan.items])
+                    [it.settled for it in run.plan.items])
         return
     check_output(output, overwrite, inputs=[*inputs, weights])
 
@@ -210,7 +212,7 @@ def hfr(
             config = replace(config, settle_contrast=False)
         else:
             check_time_order(ins.source.exposures(), inputs[0])
-        est, rec = settle_recording(make_method(config), ins.source, config)
+        est, settled = settle(make_method(config), ins.source, config)
         notes: list[str] = [binned_note(ins.source, est, stream=True)] if ins.binned else []
         contrast_notes = ContrastNotes()
         contrasts: list[float] = []
@@ -250,27 +252,27 @@ def hfr(
                     write_text(tmp / "timestamps.txt", "\n".join(lines) + "\n")
                     meta = hfr_meta(ins, est, per_exposure=per_exposure, fps=fps,
                                     fill_gaps=fill_gaps, offset_us=offset, config=config,
-                                    recording=rec)
+                                    settled=settled)
                     write_json(tmp / "meta.json", {**meta, "contrast": contrasts,
                                                    "frames": count})
 
     for note in [*contrast_notes.lines(), *notes]:
         warn(note)
     _report(output, count["exposure"], count["gap"], contrasts, clipped, config.contrast,
-            fps, est.name, est.n, 1, [rec])
+            fps, est.name, est.n, 1, [settled])
 
 
 def _report(output: Path, exposure: int, gap: int, contrasts: Sequence[float],
             clipped: Sequence[float], given: float | None, fps: float, method: str,
             n: int, recordings: int = 1, settled: Sequence = ()) -> None:
-    """``settled``: each recording's one estimated c (a ``RecordingContrast``) or None."""
-    from ..deblur import recording_line
+    """``settled``: what was settled for each recording (a ``Settled``) or None."""
     from ..write import clipped_message
 
-    for rec in settled:
-        if rec is not None:
-            typer.echo(as_flags(recording_line(rec)))
-    if contrasts and not (settled and all(r is not None for r in settled)):
+    for done in settled:
+        for line in [] if done is None else done.lines():
+            typer.echo(as_flags(line))
+    if contrasts and not (settled and all(d is not None and d.contrast is not None
+                                          for d in settled)):
         import numpy as np
 
         kind = "given" if given is not None else "estimated"

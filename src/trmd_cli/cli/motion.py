@@ -13,7 +13,15 @@ from typing import Annotated
 import typer
 
 from .boundary import as_flags, err, guarded, progress_enabled, warn
-from .deblur import Contrast, HotPixels, Isolated, TimeOffset, contrast_scope, parse_contrast
+from .deblur import (
+    Contrast,
+    HotPixels,
+    Isolated,
+    Pattern,
+    TimeOffset,
+    contrast_scope,
+    parse_contrast,
+)
 from .options import (
     Columns,
     Exposure,
@@ -44,6 +52,7 @@ def motion(
     time_offset: TimeOffset = None,
     hot_pixels: HotPixels = True,
     drop_isolated: Isolated = True,
+    remove_pattern: Pattern = True,
     threads: Threads = None,
     time_unit: TimeUnit = None,
     sensor: Sensor = None,
@@ -93,13 +102,19 @@ def motion(
                              "recording)")
         for w in ins.warnings:
             warn(w)
-        rec = None
+        rec = pattern = None
+        if remove_pattern and len(ins.source) > 1:
+            # as `trmd deblur` settles them: the fixed pattern, then one c for the recording
+            from ..deblur import pattern_line, recording_pattern
+
+            pattern = recording_pattern(ins.source)
+            typer.echo(as_flags(pattern_line(pattern)))
+            pattern = pattern if pattern.removed else None
         if c is None and contrast_scope(contrast) == "recording":
-            # as `trmd deblur --method motion` settles it: one c for the recording
             from ..deblur import recording_contrast, recording_line
 
             rec = recording_contrast(ins.source, hot_pixels=hot_pixels,
-                                     drop_isolated=drop_isolated)
+                                     drop_isolated=drop_isolated, pattern=pattern)
             if rec is not None:
                 typer.echo(as_flags(recording_line(rec)))
         written: list[str] = []
@@ -116,7 +131,7 @@ def motion(
                     continue
                 views = motion_views(f.image, win.events, e, contrast=c,
                                      hot_pixels=hot_pixels, recording=rec,
-                                     drop_isolated=drop_isolated)
+                                     drop_isolated=drop_isolated, pattern=pattern)
                 folder = tmp
                 if not ins.single:
                     folder = tmp / frame_folder_name(f.name, f.index)

@@ -27,7 +27,7 @@ import numpy as np
 from ..errors import InputError
 from ..events import EventStream, Exposure
 from ..motion.sampled import SampledMotion
-from .base import ReadOptions
+from .base import Frame, ReadOptions
 
 __all__ = ["EvalFrame", "EvalSource", "open_dataset"]
 
@@ -96,6 +96,16 @@ class EvalSource:
     def frames(self, limit: int | None = None) -> Iterator[EvalFrame]:  # pragma: no cover
         raise NotImplementedError
 
+    def blurry_frames(self, positions: Sequence[int]) -> Iterator[Frame]:
+        """The blurry frames at ``positions`` (0-based, in order) alone, for the fixed pattern
+        (:mod:`trmd_cli.fixed_pattern`); this default reads the frames in turn."""
+        wanted = sorted(set(positions))
+        if not wanted:
+            return
+        for i, f in enumerate(self.frames(wanted[-1] + 1)):
+            if i in wanted:
+                yield Frame(f.blurry, f.exposure, f.index, f.name)
+
     def close(self) -> None:
         pass
 
@@ -162,6 +172,10 @@ class _WindowSource(EvalSource):
             c = self._contrast(f.index) if self._contrast else None
             yield EvalFrame(f.index, f.name, f.image, exp.instants_us(self.n), exp, win.events,
                             None, truth, c, self._true_motion(f.index))
+
+    def blurry_frames(self, positions: Sequence[int]) -> Iterator[Frame]:
+        """The frames at ``positions`` without their events."""
+        return self._src.subset(positions).frames()
 
     def _true_motion(self, index: int) -> SampledMotion | None:
         h = self._motion(index) if self._motion else None

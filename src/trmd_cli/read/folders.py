@@ -289,6 +289,16 @@ class FrameSource:
         for frame, ev in zip(frames, events, strict=False):
             yield FrameWindow(frame, ev)
 
+    def frames(self) -> Iterator[Frame]:
+        """The frames alone, in order: no event is read (a window a subset kept gives its
+        frame)."""
+        if self.recording is None and not self._stored:
+            for entry in self.entries:
+                kept = self._kept.get(entry)
+                yield self._read_frame(entry) if kept is None else kept.frame
+            return
+        yield from self._frames()
+
     def _frames(self) -> Iterator[Frame]:
         if self._stored:
             wanted = {e.index: e for e in self.entries}
@@ -409,12 +419,16 @@ class BinnedSource:
                             list(self.warnings))
 
     def __iter__(self) -> Iterator[BinnedWindow]:
+        for i, frame in enumerate(self.frames()):
+            yield BinnedWindow(frame, self.binned.frame(i))
+
+    def frames(self) -> Iterator[Frame]:
+        """The frames alone, in order (no bins read)."""
         for i, path in enumerate(self.images):
             img, note = read_image_noted(path)
             check_frame_matches(img, self.width, self.height, path)
             n = frame_number(path)
-            yield BinnedWindow(Frame(img, None, n if n is not None else i, path.stem, note),
-                               self.binned.frame(i))
+            yield Frame(img, None, n if n is not None else i, path.stem, note)
 
     def close(self) -> None:
         pass
