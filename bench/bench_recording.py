@@ -1,11 +1,12 @@
 """Whole-recording cost per frame against the bare network, measured in the same process.
 
     python bench/bench_recording.py [INPUTS …] [--method trmd] [--threads T] [--precision P]
-                                    [--repeat R] [--profile] [--contrast C]
+                                    [--repeat R] [--profile] [--contrast C] [--keep-pattern]
 
-What `trmd deblur INPUTS -o OUT` does per frame after start-up — the recording's contrast
-threshold (estimated once on its busiest frames; ``--contrast-scope frame``: per frame, as
-``--contrast frame``), read the frame and its events, voxels and timing levels, the network,
+What `trmd deblur INPUTS -o OUT` does per frame after start-up — the sensor's fixed pattern
+and the recording's contrast threshold (each estimated once, the threshold on its busiest
+frames; ``--contrast-scope frame``: per frame, as ``--contrast frame``; ``--keep-pattern``: no
+pattern), read the frame and its events, voxels and timing levels, the network,
 the reconstruction, writing the result folder (the next frame deblurred while the last is
 written) — timed over the whole recording (the best of ``--repeat`` passes), against the
 shipped network's bare forward pass on a frame of the same size (median of 10, after 2 warm-up
@@ -21,8 +22,8 @@ huge-page advice alone).
 
 ``--profile`` adds one pass without the overlap, each stage timed on its own (median over the
 frames, ms of wall time, and in brackets of the thread's CPU time, which other work on the
-machine does not inflate): the recording's threshold (its whole cost shared out over the
-frames), reading, the per-pixel sort, the hot-pixel mask, the isolated events left out, the
+machine does not inflate): the recording's pattern and threshold (their whole cost shared out
+over the frames), reading, the per-pixel sort, the hot-pixel mask, the isolated events left out, the
 EDI table, the threshold search, the voxels and their timing levels, the network's forward
 pass, the rest of the method (checks, reconstruction, conversions) and writing the result
 folder.
@@ -71,7 +72,7 @@ class _Timed:
 def profile(ins, est, config, tmp: Path) -> str:
     """One sequential pass with every stage timed: ``stage ms`` pairs, medians over frames."""
     from trmd_cli import methods, voxel
-    from trmd_cli.deblur import deblur_frames, settle_recording
+    from trmd_cli.deblur import deblur_frames, settle
     from trmd_cli.write import write_result_folder
 
     per_frame: dict[str, list[float]] = defaultdict(list)
@@ -95,9 +96,9 @@ def profile(ins, est, config, tmp: Path) -> str:
         if net is not None:
             net.forward = _timed(now, "network", net.forward)
         t, c = time.perf_counter(), time.thread_time()
-        est, _ = settle_recording(est, ins.source, config)
-        settle = ((time.perf_counter() - t) / len(ins.source),
-                  (time.thread_time() - c) / len(ins.source))
+        est, _ = settle(est, ins.source, config)
+        settled = ((time.perf_counter() - t) / len(ins.source),
+                   (time.thread_time() - c) / len(ins.source))
         frames = iter(deblur_frames(ins.source, _Timed(est, now)))
         stages = [k for _, _, k in patches] + ["network"]
         for i in range(len(ins.source)):
@@ -118,7 +119,7 @@ def profile(ins, est, config, tmp: Path) -> str:
                 now["reading" + suffix] -= method  # the frame source and the loop's checks
                 inner = sum(now.get(k + suffix, 0.0) for k in stages)
                 now["rest of method" + suffix] = method - inner
-            now["recording c"], now["recording c cpu"] = settle
+            now["pattern and c"], now["pattern and c cpu"] = settled
             for k, v in now.items():
                 per_frame[k].append(v)
     finally:
@@ -126,7 +127,7 @@ def profile(ins, est, config, tmp: Path) -> str:
             setattr(owner, name, value)
         if net is not None:
             del net.forward
-    order = ["recording c", "reading", "sort", "hot pixels", "isolated", "EDI table",
+    order = ["pattern and c", "reading", "sort", "hot pixels", "isolated", "EDI table",
              "threshold", "voxels", "levels", "network", "rest of method", "writing"]
 
     def ms(key: str) -> float:
@@ -156,6 +157,8 @@ def main() -> None:
                          "advice off where the kernel would stall on it)")
     ap.add_argument("--contrast-scope", default="recording", choices=["recording", "frame"],
                     help="one threshold for the recording (trmd's default) or one per frame")
+    ap.add_argument("--keep-pattern", action="store_true",
+                    help="leave the sensor's fixed pattern in the frames (no estimate)")
     args = ap.parse_args()
 
     t0 = time.perf_counter()
@@ -166,7 +169,7 @@ def main() -> None:
         tune_memory()  # as `trmd` does when it starts
     import torch
 
-    from trmd_cli.deblur import deblur_frames, settle_recording
+    from trmd_cli.deblur import deblur_frames, settle
     from trmd_cli.methods import MethodConfig, make_method
     from trmd_cli.overlap import ahead
     from trmd_cli.read import ReadOptions
@@ -174,7 +177,8 @@ def main() -> None:
     from trmd_cli.write import write_result_folder
 
     config = MethodConfig(method=args.method, threads=args.threads, precision=args.precision,
-                          contrast=args.contrast, contrast_scope=args.contrast_scope)
+                          contrast=args.contrast, contrast_scope=args.contrast_scope,
+                          fixed_pattern=not args.keep_pattern)
     est = make_method(config)
     start_s = time.perf_counter() - t0
     whole, inside, cpu = float("inf"), float("nan"), float("nan")
@@ -188,7 +192,7 @@ def main() -> None:
                 frames = len(ins.source)
                 spent.clear()
                 t1, c1 = time.perf_counter(), time.process_time()
-                settled, _ = settle_recording(est, ins.source, config)
+                settled, _ = settle(est, ins.source, config)
                 for i, res in enumerate(ahead(deblur_frames(ins.source, settled))):
                     folder = Path(tmp) / f"{r}_{i:06d}"
                     folder.mkdir()

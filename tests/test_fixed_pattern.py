@@ -134,3 +134,11 @@ def test_removed_from_clips_to_the_unit_range():
     out = pattern.removed_from(np.array([[0.05, 0.5, 1.0, 0.0]] * 4, np.float32))
     np.testing.assert_allclose(out[0], [0.0, 0.4, 0.9, 0.0], atol=1e-7)
     assert pattern.rms == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize("k", [5, 6, 8])
+def test_median_is_numpys(k):
+    from trmd_cli.fixed_pattern import _median
+
+    stack = np.random.default_rng(k).random((k, 7, 9)).astype(np.float32)
+    np.testing.assert_array_equal(_median(stack), np.median(stack, axis=0))

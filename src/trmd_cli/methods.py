@@ -55,6 +55,7 @@ __all__ = [
     "FusedMethod",
     "motion_frames",
     "pattern_free",
+    "deconv_noise",
     "REGISTRY",
     "make_method",
     "unavailable",
@@ -293,18 +294,21 @@ def _with_pattern(method, pattern: FixedPattern | None):
     return out
 
 
-def pattern_free(pattern: FixedPattern | None, blurry: np.ndarray
-                  ) -> tuple[np.ndarray, float | None]:
-    """``(B without the pattern, the noise σ its deconvolution is weighed by)``; without a
-    pattern ``(B, None)`` (σ measured on B as usual). That σ lies halfway, in variance,
-    between B's as recorded and B's without the pattern (see
-    :attr:`~trmd_cli.deconv.DeconvConfig.noise`)."""
-    if pattern is None:
-        return blurry, None
+def pattern_free(pattern: FixedPattern | None, blurry: np.ndarray) -> np.ndarray:
+    """``blurry`` without ``pattern`` (``blurry`` itself without one)."""
+    return blurry if pattern is None else pattern.removed_from(blurry)
+
+
+def deconv_noise(blurry: np.ndarray, free: np.ndarray) -> float | None:
+    """The noise σ the deconvolution of ``free`` — ``blurry`` without its fixed pattern — is
+    weighed by: halfway, in variance, between B's as recorded and B's without the pattern (see
+    :attr:`~trmd_cli.deconv.DeconvConfig.noise`); None when nothing was removed (σ measured on
+    B as usual)."""
+    if free is blurry:
+        return None
     from .deconv import noise_level
 
-    out = pattern.removed_from(blurry)
-    return out, math.sqrt(0.5 * (noise_level(blurry) ** 2 + noise_level(out) ** 2))
+    return math.sqrt(0.5 * (noise_level(blurry) ** 2 + noise_level(free) ** 2))
 
 
 def _grid_match(exposure: Exposure, n: int, instants_us) -> tuple[np.ndarray, np.ndarray,
@@ -462,7 +466,7 @@ class EdiMethod:
         return _with_pattern(self, pattern)
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
-        b, _ = pattern_free(self.pattern, check_blurry(blurry, events.width, events.height))
+        b = pattern_free(self.pattern, check_blurry(blurry, events.width, events.height))
         inst = exposure.instants_us(self.n) if instants_us is None else \
             np.asarray(instants_us, np.float64)
         prep = self.prepare(b, events, exposure)
@@ -474,7 +478,7 @@ class EdiMethod:
         """EDI with the log intensity changing linearly within each bin (see
         :class:`~trmd_cli.edi.EdiBins`)."""
         bins = _check_bins(bins)
-        b, _ = pattern_free(self.pattern, check_blurry(blurry, bins.shape[2], bins.shape[1]))
+        b = pattern_free(self.pattern, check_blurry(blurry, bins.shape[2], bins.shape[1]))
         fr = _bin_grid(self.n) if fractions is None else np.asarray(fractions, np.float64)
         prep = self.prepare(b, bins)
         return Estimate(prep.model.latent(b, fr, prep.contrast), fr, prep.contrast,
@@ -531,7 +535,7 @@ class TrmdMethod:
         return _with_pattern(self, pattern)
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
-        b, _ = pattern_free(self.pattern, check_blurry(blurry, events.width, events.height))
+        b = pattern_free(self.pattern, check_blurry(blurry, events.width, events.height))
         grid, inst, nearest, exact = _grid_match(exposure, self.n, instants_us)
         # in-between instants are propagated from the nearest frame with c: settle it for them
         settle = self.needs.contrast or not exact.all()
@@ -572,7 +576,7 @@ class TrmdMethod:
         from .voxel import resample_bins, scer_from_bins
 
         bins = _check_bins(bins)
-        b, _ = pattern_free(self.pattern, check_blurry(blurry, bins.shape[2], bins.shape[1]))
+        b = pattern_free(self.pattern, check_blurry(blurry, bins.shape[2], bins.shape[1]))
         grid = _bin_grid(self.n)
         if fractions is not None and not (len(fractions) == len(grid)
                                           and np.allclose(fractions, grid)):
@@ -638,8 +642,9 @@ class MotionMethod:
         return _with_pattern(self, pattern)
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
-        b, noise = pattern_free(self.pattern,
-                                 check_blurry(blurry, events.width, events.height))
+        recorded = check_blurry(blurry, events.width, events.height)
+        b = pattern_free(self.pattern, recorded)
+        noise = deconv_noise(recorded, b)
         inst = exposure.instants_us(self.n) if instants_us is None else \
             np.asarray(instants_us, np.float64)
         prep = self.prepare(b, events, exposure)
@@ -742,8 +747,9 @@ class FusedMethod:
         from .models.fusion import MAX_CONTRAST, fusion_planes
         from .precision import autocast
 
-        b, noise = pattern_free(self.pattern,
-                                 check_blurry(blurry, events.width, events.height))
+        recorded = check_blurry(blurry, events.width, events.height)
+        b = pattern_free(self.pattern, recorded)
+        noise = deconv_noise(recorded, b)
         grid, inst, nearest, exact = _grid_match(exposure, self.n, instants_us)
         prep = self.prepare(b, events, exposure)
         # the motion method's own fallbacks ("used EDI") are not this method's: where the
@@ -783,7 +789,7 @@ class FusedMethod:
         from dataclasses import replace
 
         bins = _check_bins(bins)
-        b, _ = pattern_free(self.pattern, check_blurry(blurry, bins.shape[2], bins.shape[1]))
+        b = pattern_free(self.pattern, check_blurry(blurry, bins.shape[2], bins.shape[1]))
         est = self._trmd.from_bins(b, bins, fractions)
         return replace(est, notes=(*est.notes, "binned events have no event times to estimate "
                                    "the motion from: TRMD's frames"))

@@ -80,10 +80,12 @@ def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
             :class:`~trmd_cli.fixed_pattern.FixedPattern`), taken out of the frame first.
     """
     from .edi import check_blurry
-    from .methods import EdiMethod, motion_frames, pattern_free
+    from .methods import EdiMethod, deconv_noise, motion_frames, pattern_free
     from .motion.cmax import warped_image, window_points
 
-    b, noise = pattern_free(pattern, check_blurry(blurry, events.width, events.height))
+    recorded = check_blurry(blurry, events.width, events.height)
+    b = pattern_free(pattern, recorded)
+    noise = deconv_noise(recorded, b)
     edi = EdiMethod(3, contrast, hot_pixels, drop_isolated=drop_isolated)
     if recording is not None:
         edi = edi.for_recording(recording)
