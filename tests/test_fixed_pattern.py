@@ -142,3 +142,24 @@ def test_median_is_numpys(k):
 
     stack = np.random.default_rng(k).random((k, 7, 9)).astype(np.float32)
     np.testing.assert_array_equal(_median(stack), np.median(stack, axis=0))
+
+
+def test_binned_folder_and_frames_folder_give_their_images(tmp_path):
+    """``recording_pattern`` reads the frames alone from a binned set too (no bins needed), in
+    order, and finds the pattern the frames carry."""
+    from tests.helpers.bins import write_bins
+    from trmd_cli.deblur import recording_pattern
+    from trmd_cli.read.base import ReadOptions
+    from trmd_cli.read.inputs import open_inputs
+    from trmd_cli.write import write_image
+
+    p = _pattern()
+    (tmp_path / "blurry").mkdir()
+    for k, s in enumerate(_moving()):
+        write_image(tmp_path / "blurry" / f"{k:04d}.png", s + p, bit_depth=16)
+    bins = write_bins(tmp_path / "event_bins.npz", np.ones((8, 6, H, W), np.int32))
+    with open_inputs([tmp_path / "blurry", bins], ReadOptions()) as ins:
+        assert ins.binned
+        got = recording_pattern(ins.source)
+    assert got.removed and got.frames == tuple(f"{k:04d}" for k in range(8))
+    assert _corr(got.offsets, p) > 0.85
