@@ -226,12 +226,17 @@ def _count(item: FrameWindow | BinnedWindow) -> int:
 
 
 def _item_blurry(item: FrameWindow | BinnedWindow) -> np.ndarray:
-    """An item's blurry frame as the loop gives it to a method: checked against its events'
-    size, float32, clipped to [0, 1]."""
-    frame = item.frame
+    """An item's blurry frame as the loop gives it to a method (:func:`_as_given`, against its
+    events' size)."""
     h, w = item.bins.shape[1:] if isinstance(item, BinnedWindow) else \
         (item.events.height, item.events.width)
-    return _in_range(check_blurry(frame.image, w, h, frame.name), frame)[0]
+    return _as_given(item.frame, w, h)
+
+
+def _as_given(frame, width: int, height: int) -> np.ndarray:
+    """A frame's image as the loop gives it to a method: checked against the ``width`` ×
+    ``height`` sensor, float32, clipped to [0, 1]."""
+    return _in_range(check_blurry(frame.image, width, height, frame.name), frame)[0]
 
 
 def _objective(item: FrameWindow | BinnedWindow, hot_pixels: bool, drop_isolated: bool,
@@ -270,8 +275,7 @@ def pattern_from(frames: Iterable, width: int, height: int) -> FixedPattern:
     against the ``width`` × ``height`` sensor and clipped as the loop hands it to a method."""
     images, names = [], []
     for frame in frames:
-        images.append(_in_range(check_blurry(frame.image, width, height, frame.name),
-                                frame)[0])
+        images.append(_as_given(frame, width, height))
         names.append(frame.name)
     return estimate_fixed_pattern(images, names)
 

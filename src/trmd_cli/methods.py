@@ -284,14 +284,20 @@ def _with_edi(method, edi: EdiMethod):
     return out
 
 
-def _with_pattern(method, pattern: FixedPattern | None):
-    """A shallow copy of ``method`` (loaded parts shared) that removes ``pattern`` from every
-    blurry frame it is given (None, or a pattern not removed: none)."""
-    import copy
+class _RemovesPattern:
+    """What every method shares: the recording's fixed pattern, removed from every blurry frame
+    it is given (:meth:`for_pattern`; None: none)."""
 
-    out = copy.copy(method)
-    out.pattern = pattern if pattern is not None and pattern.removed else None
-    return out
+    pattern: FixedPattern | None = None
+
+    def for_pattern(self, pattern: FixedPattern | None):
+        """A shallow copy of this method (loaded parts shared) that removes ``pattern`` from
+        every blurry frame (None, or a pattern not removed: none)."""
+        import copy
+
+        out = copy.copy(self)
+        out.pattern = pattern if pattern is not None and pattern.removed else None
+        return out
 
 
 def pattern_free(pattern: FixedPattern | None, blurry: np.ndarray) -> np.ndarray:
@@ -406,7 +412,7 @@ def window_model(events: EventStream | np.ndarray, exposure: Exposure | None,
 _MODELS: dict[int, tuple[weakref.ref, tuple, tuple]] = {}
 
 
-class EdiMethod:
+class EdiMethod(_RemovesPattern):
     """EDI with a given, per-recording or per-frame estimated contrast threshold."""
 
     name = "edi"
@@ -418,8 +424,6 @@ class EdiMethod:
                "pixels and isolated events ignored (binned data: events spread evenly within "
                "each bin)")
 
-    #: the fixed pattern removed from every blurry frame (:meth:`for_pattern`), or None
-    pattern: FixedPattern | None = None
 
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
                  hot_pixels: bool = True, *, recording: RecordingContrast | None = None,
@@ -457,13 +461,8 @@ class EdiMethod:
     def for_recording(self, recording: RecordingContrast) -> EdiMethod:
         """This method with the recording's estimated c for every frame (reported as
         estimated, with no note per frame: the run says once where it came from)."""
-        return _with_pattern(EdiMethod(self.n, recording.contrast, self.hot_pixels,
-                                       recording=recording, drop_isolated=self.drop_isolated),
-                             self.pattern)
-
-    def for_pattern(self, pattern: FixedPattern | None) -> EdiMethod:
-        """This method removing ``pattern`` from every blurry frame."""
-        return _with_pattern(self, pattern)
+        return EdiMethod(self.n, recording.contrast, self.hot_pixels, recording=recording,
+                         drop_isolated=self.drop_isolated).for_pattern(self.pattern)
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         b = pattern_free(self.pattern, check_blurry(blurry, events.width, events.height))
@@ -485,7 +484,7 @@ class EdiMethod:
                         prep.estimated, prep.reliable, contrast_note=prep.note)
 
 
-class TrmdMethod:
+class TrmdMethod(_RemovesPattern):
     """TRMD (RE-Net residuals + reconstruction). Weights that take the threshold c get it given
     or estimated as EDI's; where c is settled, the frames' ghosts are replaced by what the
     events report (:mod:`trmd_cli.ghosts`); instants other than the 2N+1 are propagated from
@@ -495,8 +494,6 @@ class TrmdMethod:
     #: known before the weights are read; an instance's ``needs`` also says what they take
     needs = MethodNeeds(weights=True)
     summary = "RE-Net residuals + two-stage reconstruction, as `trmd deblur --method trmd`"
-    #: the fixed pattern removed from every blurry frame (:meth:`for_pattern`), or None
-    pattern: FixedPattern | None = None
 
     def __init__(self, n: int | None = None, weights: str | Path | None = None,
                  device: str = "auto", threads: int | None = None,
@@ -529,10 +526,6 @@ class TrmdMethod:
     def for_recording(self, recording: RecordingContrast):
         """This method (the same loaded parts) with the recording's c for every frame."""
         return _with_edi(self, self._edi.for_recording(recording))
-
-    def for_pattern(self, pattern: FixedPattern | None):
-        """This method (the same loaded parts) removing ``pattern`` from every blurry frame."""
-        return _with_pattern(self, pattern)
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         b = pattern_free(self.pattern, check_blurry(blurry, events.width, events.height))
@@ -596,7 +589,7 @@ class TrmdMethod:
                         contrast_note=prep.note)
 
 
-class MotionMethod:
+class MotionMethod(_RemovesPattern):
     """Non-blind deconvolution of the blurry frame along the global motion the events show
     (contrast maximisation, :mod:`trmd_cli.motion`; solver and guard, :mod:`trmd_cli.deconv`),
     anchored to EDI's middle frame and blended with EDI where the motion does not explain the
@@ -612,8 +605,6 @@ class MotionMethod:
 
     #: put before each of the motion's notes (a given motion says which one it is)
     note_prefix = ""
-    #: the fixed pattern removed from every blurry frame (:meth:`for_pattern`), or None
-    pattern: FixedPattern | None = None
 
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
                  hot_pixels: bool = True, motion=None, *, drop_isolated: bool = True) -> None:
@@ -636,10 +627,6 @@ class MotionMethod:
     def for_recording(self, recording: RecordingContrast):
         """This method (the same loaded parts) with the recording's c for every frame."""
         return _with_edi(self, self._edi.for_recording(recording))
-
-    def for_pattern(self, pattern: FixedPattern | None):
-        """This method removing ``pattern`` from every blurry frame."""
-        return _with_pattern(self, pattern)
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         recorded = check_blurry(blurry, events.width, events.height)
@@ -669,7 +656,7 @@ class MotionMethod:
                          "events have none", hint="use `method='edi'` or `method='trmd'`")
 
 
-class FusedMethod:
+class FusedMethod(_RemovesPattern):
     """TRMD and the motion method fused: per latent instant a small trained network
     (:mod:`trmd_cli.models.fusion`) corrects the motion method's frame from TRMD's, EDI's, B,
     the motion guard's weight and the events (:mod:`trmd_cli.fusion`). One c for all three,
@@ -680,8 +667,6 @@ class FusedMethod:
     needs = MethodNeeds(contrast=True, weights=True)
     summary = ("TRMD and the motion method fused by a small trained network; contrast "
                "estimated per frame as EDI's")
-    #: the fixed pattern removed from every blurry frame (:meth:`for_pattern`), or None
-    pattern: FixedPattern | None = None
 
     def __init__(self, n: int | None = None, weights: str | Path | None = None,
                  device: str = "auto", threads: int | None = None,
@@ -735,10 +720,6 @@ class FusedMethod:
         out = copy.copy(self)
         out._trmd = self._trmd.for_recording(recording)
         return out
-
-    def for_pattern(self, pattern: FixedPattern | None):
-        """This method (the same loaded parts) removing ``pattern`` from every blurry frame."""
-        return _with_pattern(self, pattern)
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         import torch
