@@ -136,3 +136,23 @@ def test_still_camera_and_single_frames_keep_their_pixels(tmp_path):
     meta = json.loads((out / "meta.json").read_text())["fixed_pattern"]
     assert not meta["removed"] and "hardly moved" in meta["reason"]
     assert "no fixed pattern removed: the scene hardly moved" in r.output.replace("\n", " ")
+
+
+def test_finetune_sees_the_frames_deblur_gives_the_network(panned):
+    """Fine-tuning's windows hold the frames without the pattern, as the network gets them in
+    use; with `fixed_pattern=False`, as recorded."""
+    from trmd_cli.train.finetune import FinetuneConfig, prepare_windows
+
+    rec, _, added, c = panned
+
+    def windows(**kw):
+        config = FinetuneConfig(losses={"reblur": 1.0}, contrast=c, max_windows=3, **kw)
+        return prepare_windows([[rec]], 3, timing=False, config=config)
+
+    (on, notes), (off, _) = windows(), windows(fixed_pattern=False)
+    assert any("removed the sensor's fixed pattern" in n for n in notes)
+    for a, b in zip(on, off, strict=True):
+        removed = b.blurry - a.blurry
+        # what left the frame is the pattern's fine part (away from clipped pixels)
+        assert np.corrcoef(removed.ravel(), added.ravel())[0, 1] > 0.8
+        assert np.sqrt(np.mean(removed ** 2)) > 0.008

@@ -15,7 +15,7 @@ from typing import Annotated, Optional
 import typer
 
 from .boundary import err, guarded, progress_enabled, warn
-from .deblur import HotPixels, TimeOffset, parse_contrast
+from .deblur import HotPixels, Pattern, TimeOffset, parse_contrast
 from .options import (
     Columns,
     Exposure,
@@ -98,6 +98,7 @@ def finetune(
         "refine,head,up4,up3; `trmd info` on weights does not list them: an unknown name is "
         "refused with the list). Default: all.")] = None,
     hot_pixels: HotPixels = True,
+    remove_pattern: Pattern = True,
     exposure: Exposure = None,
     time_offset: TimeOffset = None,
     threads: Threads = None,
@@ -136,7 +137,7 @@ def finetune(
     config = FinetuneConfig(steps=steps, crop=crop, batch_size=batch_size, lr=lr,
                             losses=parse_losses(loss or []), anchor=anchor, holdout=holdout,
                             max_windows=max_windows, contrast=parse_contrast(contrast),
-                            hot_pixels=hot_pixels, seed=seed,
+                            hot_pixels=hot_pixels, fixed_pattern=remove_pattern, seed=seed,
                             trainable=tuple(x.strip() for x in (parts or "").split(",")
                                             if x.strip()))
     offset = parse_duration_us(time_offset) if time_offset else 0

@@ -79,6 +79,8 @@ class FinetuneConfig:
         contrast: the sensor's threshold c (log intensity per event); None = estimate it per
             window as ``trmd deblur`` does.
         hot_pixels: ignore the events of hot pixels (c and motion).
+        fixed_pattern: remove each recording's sensor pattern from its frames, as ``trmd
+            deblur`` does before the network sees them (:mod:`trmd_cli.fixed_pattern`).
         penalty, charbonnier_eps, log_eps: as in a training recipe's ``[loss]`` table.
         seed: crops and window order.
         trainable: names of the network's top-level parts that train (e.g. ``("refine",
@@ -101,6 +103,7 @@ class FinetuneConfig:
     max_instants: int = 48
     contrast: float | None = None
     hot_pixels: bool = True
+    fixed_pattern: bool = True
     penalty: str = "charbonnier"
     charbonnier_eps: float = 1e-3
     log_eps: float = 1e-2
@@ -247,6 +250,7 @@ def prepare_windows(groups: Sequence[Sequence[str | Path]], n: int, *, timing: b
     Raises:
         InputError: no input frame has events in its exposure.
     """
+    from ..deblur import pattern_line, recording_pattern
     from ..methods import EdiMethod
     from ..read.inputs import open_inputs
 
@@ -261,25 +265,30 @@ def prepare_windows(groups: Sequence[Sequence[str | Path]], n: int, *, timing: b
         for paths in groups:
             ins = stack.enter_context(open_inputs(list(paths), read_options, exposure=exposure,
                                                   offset_us=offset_us))
-            opened.append((Path(paths[0]).name, ins))
+            pattern = None
+            if config.fixed_pattern and len(ins.source) > 1:
+                pattern = recording_pattern(ins.source)
+                notes.append(f"{Path(paths[0]).name}: {pattern_line(pattern)}")
+                pattern = pattern if pattern.removed else None
+            opened.append((Path(paths[0]).name, ins, pattern))
             notes.extend(ins.warnings)
             if ins.binned:
                 notes.append(f"{Path(paths[0]).name}: binned events have no event times; the "
                              "motion is estimated from events spread evenly over each bin")
-        total = sum(len(ins.source) for _, ins in opened)
+        total = sum(len(ins.source) for _, ins, _ in opened)
         # evenly over all frames of all inputs, at most max_windows
         take = set(np.unique(np.linspace(0, total - 1, min(total, config.max_windows))
                              .round().astype(int)).tolist()) if total else set()
         seen = 0
-        for source_name, ins in opened:
+        for source_name, ins, pattern in opened:
             for i, item in enumerate(ins.source):
                 if seen + i not in take:
                     continue
                 frame = item.frame
                 if ins.binned:
-                    win = _binned_window(item.bins, frame, n, edi, config)
+                    win = _binned_window(item.bins, frame, n, edi, config, pattern)
                 else:
-                    win = _event_window(item.events, frame, n, timing, edi, config)
+                    win = _event_window(item.events, frame, n, timing, edi, config, pattern)
                 if win is None:
                     skipped += 1
                     continue
@@ -296,19 +305,29 @@ def prepare_windows(groups: Sequence[Sequence[str | Path]], n: int, *, timing: b
     return windows, notes
 
 
-def _event_window(events, frame, n: int, timing: bool, edi, config: FinetuneConfig
-                  ) -> Window | None:
-    """A window of events with times (None: no event in the exposure)."""
+def _blurry(frame, width: int, height: int, pattern) -> tuple[np.ndarray, float | None]:
+    """A window's blurry frame as the network sees it (luma, without the recording's fixed
+    pattern), and the noise σ its deconvolution is weighed by (None: measured on it)."""
     from ..edi import check_blurry
+    from ..methods import deconv_noise, pattern_free
+
+    recorded = np.clip(check_blurry(frame.image, width, height, frame.name), 0.0, 1.0)
+    b = _luma(pattern_free(pattern, recorded))
+    return b, None if pattern is None else deconv_noise(_luma(recorded), b)
+
+
+def _event_window(events, frame, n: int, timing: bool, edi, config: FinetuneConfig,
+                  pattern=None) -> Window | None:
+    """A window of events with times (None: no event in the exposure); ``pattern``: the
+    recording's fixed pattern, removed from its frame."""
     from ..voxel import scer_levels, scer_voxels
 
     span = frame.exposure
     if len(events.within(span)) == 0:
         return None
-    b = _luma(np.clip(check_blurry(frame.image, events.width, events.height, frame.name),
-                      0.0, 1.0))
+    b, noise = _blurry(frame, events.width, events.height, pattern)
     prep = edi.prepare(b, events, span)
-    motion, trusted, teacher = _motion_and_teacher(b, events, span, n, prep, config)
+    motion, trusted, teacher = _motion_and_teacher(b, events, span, n, prep, config, noise)
     # the per-pixel sort c was settled with serves the voxels and levels too
     return Window(frame.name, b.astype(np.float32),
                   scer_voxels(events, span, n, window=prep.window),
@@ -316,13 +335,12 @@ def _event_window(events, frame, n: int, timing: bool, edi, config: FinetuneConf
                   float(prep.contrast), motion, trusted, *teacher)
 
 
-def _binned_window(bins: np.ndarray, frame, n: int, edi, config: FinetuneConfig
-                   ) -> Window | None:
+def _binned_window(bins: np.ndarray, frame, n: int, edi, config: FinetuneConfig,
+                   pattern=None) -> Window | None:
     """A window of binned events: the network's inputs and c as ``TrmdMethod.from_bins``
     gives them in use (voxels from the counts, the counts as timing levels), the motion and
     the deconvolution from events spread evenly over each bin (:func:`~trmd_cli.voxel.
-    spread_bins`). None: no event in the bins."""
-    from ..edi import check_blurry
+    spread_bins`). None: no event in the bins. ``pattern``: as for :func:`_event_window`."""
     from ..methods import EdiMethod
     from ..voxel import resample_bins, scer_from_bins, spread_bins
 
@@ -330,12 +348,12 @@ def _binned_window(bins: np.ndarray, frame, n: int, edi, config: FinetuneConfig
     if not np.any(counts):
         return None
     height, width = counts.shape[1:]
-    b = _luma(np.clip(check_blurry(frame.image, width, height, frame.name), 0.0, 1.0))
+    b, noise = _blurry(frame, width, height, pattern)
     c = float(edi.prepare(b, counts).contrast)
     events, span = spread_bins(counts)
     # binned EDI has no hot-pixel mask (no per-event information to judge by): nor here
     prep = EdiMethod(n, c, hot_pixels=False).prepare(b, events, span)
-    motion, trusted, teacher = _motion_and_teacher(b, events, span, n, prep, config)
+    motion, trusted, teacher = _motion_and_teacher(b, events, span, n, prep, config, noise)
     two_n = 2 * n
     voxels = scer_from_bins(counts if counts.shape[0] == two_n else
                             resample_bins(counts, two_n))
@@ -343,7 +361,8 @@ def _binned_window(bins: np.ndarray, frame, n: int, edi, config: FinetuneConfig
                   motion, trusted, *teacher)
 
 
-def _motion_and_teacher(blurry, events, exposure, n: int, prep, config: FinetuneConfig
+def _motion_and_teacher(blurry, events, exposure, n: int, prep, config: FinetuneConfig,
+                        noise: float | None = None
                         ) -> tuple[GlobalMotion, bool, tuple[Any, Any]]:
     """The exposure's motion, whether it may teach, and the guarded deconvolution along it
     ((None, None) when no motion term is on). A motion the events show (contrast gain ≥
@@ -355,20 +374,21 @@ def _motion_and_teacher(blurry, events, exposure, n: int, prep, config: Finetune
     trusted = bool(motion.confidence >= config.min_confidence)
     if not any(config.losses.get(k, 0) > 0 for k in MOTION_TERMS):
         return motion, trusted, (None, None)
-    teacher = _deconvolved(blurry, events, exposure, n, prep, motion, trusted)
+    teacher = _deconvolved(blurry, events, exposure, n, prep, motion, trusted, noise)
     return motion, trusted and float(teacher[1].mean()) >= 0.01, teacher
 
 
-def _deconvolved(blurry, events, exposure, n: int, prep, motion, trusted: bool
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """The guarded motion-aware deconvolution at the instants k/2N and its share per frame."""
+def _deconvolved(blurry, events, exposure, n: int, prep, motion, trusted: bool,
+                 noise: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The guarded motion-aware deconvolution at the instants k/2N and its share per frame
+    (``noise``: see :func:`~trmd_cli.methods.motion_frames`)."""
     from ..methods import motion_frames
 
     fr = np.arange(2 * n + 1) / (2 * n)
     if not trusted:
         lat = prep.model.latent(blurry, np.append(fr, 0.5), prep.contrast)[:-1]
         return lat.astype(np.float32), np.zeros_like(lat, np.float32)
-    _, res = motion_frames(blurry, events, exposure, fr, prep, motion)
+    _, res = motion_frames(blurry, events, exposure, fr, prep, motion, noise)
     weight = np.zeros_like(res.frames, np.float32) if res.weights is None else res.weights
     return res.frames.astype(np.float32), weight.astype(np.float32)
 
