@@ -12,8 +12,8 @@ Before the loop, :func:`settle_pattern` gives a method the sensor's fixed patter
 from every frame (:mod:`trmd_cli.fixed_pattern`), and :func:`settle_recording` one contrast
 threshold for the whole recording (one sensor, one threshold), estimated on the frames of it
 that hold the most events: steadier than an estimate per frame, and not paid for again on every
-frame. Both read the same frames, spread over the recording, which the loop then does not read
-again.
+frame (:func:`settle` does both). The threshold reads frames spread over the recording, which
+the loop then does not read again; the pattern reads the same frames' images alone.
 """
 
 from __future__ import annotations
@@ -41,8 +41,7 @@ from .threshold import (
 __all__ = ["FrameResult", "ContrastNotes", "deblur_frames", "exposure_instants", "binned_note",
            "recording_contrast", "settle_recording", "recording_line", "recording_pattern",
            "settle_pattern", "pattern_line", "pattern_from", "candidates_of", "Settled", "settle",
-           "RECORDING_FRAMES",
-           "RECORDING_CANDIDATES"]
+           "RECORDING_FRAMES", "RECORDING_CANDIDATES"]
 
 #: frames a recording's contrast threshold is estimated from: those with the most events
 RECORDING_FRAMES = 3
