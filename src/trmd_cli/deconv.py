@@ -88,9 +88,9 @@ class DeconvConfig:
             frame whose fixed pattern was removed (:mod:`trmd_cli.fixed_pattern`), whose σ
             falls to a third on esl-cups: the σ measured after the removal lets the solver's
             rings through there (events explained 0.820 with the pattern kept → 0.793), the
-            σ as recorded holds back what simulated pans gain (motion method, three pans:
-            −0.36 / −0.01 / +0.02 dB against +0.44 / +0.45 / +0.02). Halfway in variance:
-            +0.13 / +0.34 / +0.38 dB, and 0.837 on esl-cups.
+            σ as recorded holds back what simulated pans gain (motion method, the three pans
+            of bench/bench_fixed_pattern.py: −0.36 / −0.05 / +0.03 dB against +0.44 / +0.42 /
+            +0.02). Halfway in variance: +0.13 / +0.29 / +0.39 dB, and 0.837 on esl-cups.
     """
 
     penalty: float = 2e-4
