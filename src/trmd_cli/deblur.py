@@ -174,7 +174,8 @@ def recording_contrast(source: Sequence, *, hot_pixels: bool = True, drop_isolat
         share_instants: the frames share out the energy's instants (frame i of n takes every
             n-th from the i-th), so that an evaluation costs what one frame's does; else each
             frame is measured at all of them.
-        pattern: the sensor's fixed pattern, removed from the frames as the method will.
+        pattern: the sensor's fixed pattern, removed from the frames as the method will (one
+            not removed leaves them as they are).
     Returns:
         The estimate, or None when no candidate holds :data:`~trmd_cli.threshold.MIN_EVENTS`
         events (each frame then settles its own c, as a lone frame does).
@@ -259,11 +260,14 @@ def _objective(item: FrameWindow | BinnedWindow, hot_pixels: bool, drop_isolated
 
 
 def recording_pattern(source: Sequence, candidates: int = RECORDING_CANDIDATES
-                      ) -> FixedPattern:
+                      ) -> FixedPattern | None:
     """The sensor's fixed pattern (:func:`~trmd_cli.fixed_pattern.estimate_fixed_pattern`)
     from at most ``candidates`` frames spread evenly over ``source`` (the frames the
-    recording's threshold chooses among; their images only, no events). Which frames are
-    used depends on the recording only."""
+    recording's threshold chooses among; their images only, no events); None for a source of
+    one frame, which has no pattern to tell from its scene. Which frames are used depends on
+    the recording only."""
+    if len(source) < 2:
+        return None
     return pattern_from(source.subset(candidates_of(len(source), candidates)).frames(),
                         source.width, source.height)
 
@@ -284,10 +288,8 @@ def settle_pattern(method: Method, source: Sequence, config: MethodConfig
     """``method`` removing the recording's fixed pattern from every frame when ``config``
     asks for it (``fixed_pattern``) and the recording shows one; else ``method`` unchanged.
     Also gives the estimate, removed or not (None: not asked for, or a source of one frame)."""
-    if not config.fixed_pattern or len(source) < 2:
-        return method, None
-    pattern = recording_pattern(source)
-    return (method.for_pattern(pattern) if pattern.removed else method), pattern
+    pattern = recording_pattern(source) if config.fixed_pattern else None
+    return (method if pattern is None else method.for_pattern(pattern)), pattern
 
 
 def pattern_line(pattern: FixedPattern) -> str:
@@ -313,8 +315,7 @@ def settle_recording(method: Method, source: Sequence, config: MethodConfig,
         # (one frame: its own estimate is the recording's)
         return method, None
     rec = recording_contrast(source, hot_pixels=config.hot_pixels,
-                             drop_isolated=config.drop_isolated,
-                             pattern=pattern if pattern is not None and pattern.removed else None)
+                             drop_isolated=config.drop_isolated, pattern=pattern)
     return (method, None) if rec is None else (method.for_recording(rec), rec)
 
 
@@ -334,7 +335,7 @@ class Settled:
 
     def applied_to(self, method: Method) -> Method:
         """``method`` with what was settled: the pattern removed, the recording's c."""
-        if self.pattern is not None and self.pattern.removed:
+        if self.pattern is not None:
             method = method.for_pattern(self.pattern)
         return method if self.contrast is None else method.for_recording(self.contrast)
 

@@ -62,8 +62,8 @@ def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, t
             frame, is the c of all three).
         n: 2N+1 instants; must be the weights' N.
         prepared: the exposure already settled by ``trmd.prepare`` (None: settled here).
-        noise: B's noise σ as recorded, when ``blurry`` had its fixed pattern removed (see
-            :func:`~trmd_cli.methods.motion_frames`).
+        noise: the σ the deconvolution is weighed by when ``blurry`` had its fixed pattern
+            removed (see :func:`~trmd_cli.methods.motion_frames`).
     """
     from .methods import motion_frames
     from .threads import beside

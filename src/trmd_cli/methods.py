@@ -356,8 +356,8 @@ def motion_frames(blurry: np.ndarray, events: EventStream, exposure: Exposure,
     that c was estimated, the EDI frames inside ``res`` have the c the deconvolution implies
     (its ``fallback_contrast``).
     ``motion``: a path to use instead of the estimate, its evidence already measured.
-    ``noise``: B's noise σ as recorded, when ``blurry`` had its fixed pattern removed (None:
-    measured on ``blurry``)."""
+    ``noise``: the σ the deconvolution is weighed by when ``blurry`` had its fixed pattern
+    removed (:func:`deconv_noise`; None: measured on ``blurry``)."""
     from .deconv import DeconvConfig, motion_deblur
 
     # EDI at the instants and at mid-exposure in one pass (one blur integral, not two)
@@ -423,7 +423,6 @@ class EdiMethod(_RemovesPattern):
     summary = ("EDI: contrast estimated per frame (a set's samples are independent), hot "
                "pixels and isolated events ignored (binned data: events spread evenly within "
                "each bin)")
-
 
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
                  hot_pixels: bool = True, *, recording: RecordingContrast | None = None,

@@ -61,34 +61,26 @@ def displacement_field(motion, width: int, height: int) -> np.ndarray:
 
 
 def motion_views(blurry: np.ndarray, events: EventStream, exposure: Exposure, *,
-                 contrast: float | None = None, hot_pixels: bool = True,
-                 recording=None, drop_isolated: bool = True,
-                 pattern=None) -> MotionViews:
+                 edi=None) -> MotionViews:
     """Estimate the exposure's motion and run the motion method's guard, as
     ``trmd deblur --method motion`` does.
 
     Args:
         blurry: (H, W[, 3]) float32 [0, 1]; events, exposure: the stream and its window (µs).
-        contrast: c for EDI's fallback, as given (None = estimated on this frame alone).
-        hot_pixels: leave the events of hot pixels out.
-        drop_isolated: leave the events no neighbour corroborates out of EDI's fallback and
-            of c's estimate (:mod:`trmd_cli.isolated`).
-        recording: the recording's estimated c (a
-            :class:`~trmd_cli.threshold.RecordingContrast`), used instead of ``contrast``; as
-            an estimate, it is refitted for EDI's frames as ``trmd deblur`` does.
-        pattern: the recording's fixed pattern (a removed
-            :class:`~trmd_cli.fixed_pattern.FixedPattern`), taken out of the frame first.
+        edi: the :class:`~trmd_cli.methods.EdiMethod` that settles the exposure, as the
+            run settled it: its c (given, the recording's — refitted for EDI's frames as ``trmd
+            deblur`` does — or None: estimated on this frame alone), hot pixels, isolated
+            events and the recording's fixed pattern (taken out of the frame first). None:
+            ``EdiMethod(3)``.
     """
     from .edi import check_blurry
     from .methods import EdiMethod, deconv_noise, motion_frames, pattern_free
     from .motion.cmax import warped_image, window_points
 
+    edi = EdiMethod(3) if edi is None else edi
     recorded = check_blurry(blurry, events.width, events.height)
-    b = pattern_free(pattern, recorded)
+    b = pattern_free(edi.pattern, recorded)
     noise = deconv_noise(recorded, b)
-    edi = EdiMethod(3, contrast, hot_pixels, drop_isolated=drop_isolated)
-    if recording is not None:
-        edi = edi.for_recording(recording)
     prep = edi.prepare(b, events, exposure)
     _, res = motion_frames(b, events, exposure, np.array([0.5]), prep, noise=noise)
     w, h = events.width, events.height

@@ -251,7 +251,6 @@ def _kernels() -> tuple[np.ndarray, np.ndarray]:
     return kernel, np.convolve(kernel[:, 0], d, mode="same").astype(np.float32)
 
 
-
 def _smoothed(counts: np.ndarray, hb: int, wb: int) -> np.ndarray:
     """Signed counts smoothed by the Gaussian, on the half-resolution grid of whole blocks."""
     import cv2

@@ -102,21 +102,22 @@ def motion(
                              "recording)")
         for w in ins.warnings:
             warn(w)
-        rec = pattern = None
-        if remove_pattern and len(ins.source) > 1:
-            # as `trmd deblur` settles them: the fixed pattern, then one c for the recording
-            from ..deblur import pattern_line, recording_pattern
+        # as `trmd deblur` settles them: the fixed pattern, then one c for the recording
+        # (here also from a single frame, which then reports where its c came from)
+        from ..deblur import pattern_line, recording_contrast, recording_line, recording_pattern
+        from ..methods import EdiMethod
 
-            pattern = recording_pattern(ins.source)
+        edi = EdiMethod(3, c, hot_pixels, drop_isolated=drop_isolated)
+        pattern = recording_pattern(ins.source) if remove_pattern else None
+        if pattern is not None:
             typer.echo(as_flags(pattern_line(pattern)))
-            pattern = pattern if pattern.removed else None
+            edi = edi.for_pattern(pattern)
         if c is None and contrast_scope(contrast) == "recording":
-            from ..deblur import recording_contrast, recording_line
-
             rec = recording_contrast(ins.source, hot_pixels=hot_pixels,
                                      drop_isolated=drop_isolated, pattern=pattern)
             if rec is not None:
                 typer.echo(as_flags(recording_line(rec)))
+                edi = edi.for_recording(rec)
         written: list[str] = []
         with atomic_dir(output) as tmp, Progress(
                 console=err, disable=not progress_enabled() or ins.single,
@@ -129,9 +130,7 @@ def motion(
                          f"{e.end_us}] µs; skipped")
                     bar.advance(task)
                     continue
-                views = motion_views(f.image, win.events, e, contrast=c,
-                                     hot_pixels=hot_pixels, recording=rec,
-                                     drop_isolated=drop_isolated, pattern=pattern)
+                views = motion_views(f.image, win.events, e, edi=edi)
                 folder = tmp
                 if not ins.single:
                     folder = tmp / frame_folder_name(f.name, f.index)

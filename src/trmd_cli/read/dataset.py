@@ -99,10 +99,10 @@ class EvalSource:
     def blurry_frames(self, positions: Sequence[int]) -> Iterator[Frame]:
         """The blurry frames at ``positions`` (0-based, in order) alone, for the fixed pattern
         (:mod:`trmd_cli.fixed_pattern`); this default reads the frames in turn."""
-        wanted = sorted(set(positions))
+        wanted = set(positions)
         if not wanted:
             return
-        for i, f in enumerate(self.frames(wanted[-1] + 1)):
+        for i, f in enumerate(self.frames(max(wanted) + 1)):
             if i in wanted:
                 yield Frame(f.blurry, f.exposure, f.index, f.name)
 

@@ -284,7 +284,7 @@ class FrameSource:
                     self._kept[entry] = item
                 yield item
             return
-        frames = self._frames()
+        frames = self.frames()
         events = self._events(margin_us)
         for frame, ev in zip(frames, events, strict=False):
             yield FrameWindow(frame, ev)
@@ -292,14 +292,6 @@ class FrameSource:
     def frames(self) -> Iterator[Frame]:
         """The frames alone, in order: no event is read (a window a subset kept gives its
         frame)."""
-        if self.recording is None and not self._stored:
-            for entry in self.entries:
-                kept = self._kept.get(entry)
-                yield self._read_frame(entry) if kept is None else kept.frame
-            return
-        yield from self._frames()
-
-    def _frames(self) -> Iterator[Frame]:
         if self._stored:
             wanted = {e.index: e for e in self.entries}
             assert self.recording is not None
@@ -312,7 +304,8 @@ class FrameSource:
                 yield Frame(f.image, entry.exposure, f.index, f.name, f.note)
             return
         for entry in self.entries:
-            yield self._read_frame(entry)
+            kept = self._kept.get(entry)
+            yield self._read_frame(entry) if kept is None else kept.frame
 
     def _read_frame(self, entry: FrameEntry) -> Frame:
         img, note = read_image_noted(entry.image_path)  # type: ignore[arg-type]

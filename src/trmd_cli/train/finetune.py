@@ -265,11 +265,9 @@ def prepare_windows(groups: Sequence[Sequence[str | Path]], n: int, *, timing: b
         for paths in groups:
             ins = stack.enter_context(open_inputs(list(paths), read_options, exposure=exposure,
                                                   offset_us=offset_us))
-            pattern = None
-            if config.fixed_pattern and len(ins.source) > 1:
-                pattern = recording_pattern(ins.source)
+            pattern = recording_pattern(ins.source) if config.fixed_pattern else None
+            if pattern is not None:
                 notes.append(f"{Path(paths[0]).name}: {pattern_line(pattern)}")
-                pattern = pattern if pattern.removed else None
             opened.append((Path(paths[0]).name, ins, pattern))
             notes.extend(ins.warnings)
             if ins.binned:
@@ -309,11 +307,13 @@ def _blurry(frame, width: int, height: int, pattern) -> tuple[np.ndarray, float 
     """A window's blurry frame as the network sees it (luma, without the recording's fixed
     pattern), and the noise σ its deconvolution is weighed by (None: measured on it)."""
     from ..edi import check_blurry
-    from ..methods import deconv_noise, pattern_free
+    from ..methods import deconv_noise
 
     recorded = np.clip(check_blurry(frame.image, width, height, frame.name), 0.0, 1.0)
-    b = _luma(pattern_free(pattern, recorded))
-    return b, None if pattern is None else deconv_noise(_luma(recorded), b)
+    if pattern is None or not pattern.removed:
+        return _luma(recorded), None
+    b = _luma(pattern.removed_from(recorded))
+    return b, deconv_noise(_luma(recorded), b)
 
 
 def _event_window(events, frame, n: int, timing: bool, edi, config: FinetuneConfig,
