@@ -34,14 +34,13 @@ def pans() -> list[tuple[str, Path, tuple[int, int], int]]:
 def write_pan(path: Path, image: Path, size: tuple[int, int], seed: int) -> Path:
     """The pan as a trmd HDF5 file with its sharp frames and true c."""
     from trmd_cli.read.frames import read_image
-    from trmd_cli.simulate import make_sequence, to_gray
+    from trmd_cli.simulate import aps_pattern, make_sequence, to_gray
     from trmd_cli.write import H5Writer
 
     w, h = size
     seq = make_sequence(to_gray(read_image(image)), frames=8, size=size,
                         rng=np.random.default_rng(seed), read_noise=0.003)
-    r = np.random.default_rng(99)
-    pattern = (r.normal(0, 0.012, (h, w)) + r.normal(0, 0.006, (1, w))).astype(np.float32)
+    pattern = aps_pattern(np.random.default_rng(99), w, h)
     with H5Writer(path, w, h) as writer:
         writer.add_events(seq.events)
         for blurry, exposure, sharp in zip(seq.blurry, seq.exposures, seq.sharp, strict=True):

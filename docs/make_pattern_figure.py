@@ -44,14 +44,13 @@ def make_figure() -> tuple[np.ndarray, dict[str, float]]:
     from trmd_cli.fixed_pattern import estimate_fixed_pattern
     from trmd_cli.methods import EdiMethod, MotionMethod
     from trmd_cli.metrics import psnr
-    from trmd_cli.simulate import make_sequence
+    from trmd_cli.simulate import aps_pattern, make_sequence
     from trmd_cli.viz import strip
 
     w, h = SIZE
     seq = make_sequence(_image(), frames=8, size=SIZE, rng=np.random.default_rng(1),
                         read_noise=0.003)
-    r = np.random.default_rng(99)
-    added = (r.normal(0, 0.012, (h, w)) + r.normal(0, 0.006, (1, w))).astype(np.float32)
+    added = aps_pattern(np.random.default_rng(99), w, h)
     frames = [np.clip(b + added, 0, 1) for b in seq.blurry]
     pattern = estimate_fixed_pattern(frames, [str(k) for k in range(len(frames))])
     c, e = seq.contrast, seq.exposures[FRAME]

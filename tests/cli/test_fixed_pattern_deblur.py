@@ -15,7 +15,7 @@ from tests.cli.test_shard_deblur import assert_same, no_stage
 from trmd_cli.cli.app import app
 from trmd_cli.metrics import psnr
 from trmd_cli.read.frames import read_image
-from trmd_cli.simulate import make_sequence
+from trmd_cli.simulate import aps_pattern, make_sequence
 from trmd_cli.write import H5Writer
 
 runner = CliRunner()
@@ -29,8 +29,7 @@ def panned(tmp_path_factory):
     column (about esl-cups' 2.4 grey levels) added: (recording, sharp frames, pattern, c)."""
     seq = make_sequence(read_image(EXAMPLE), frames=8, size=(W, H),
                         rng=np.random.default_rng(1), read_noise=0.003)
-    r = np.random.default_rng(99)
-    pattern = (r.normal(0, 0.012, (H, W)) + r.normal(0, 0.006, (1, W))).astype(np.float32)
+    pattern = aps_pattern(np.random.default_rng(99), W, H)
     path = tmp_path_factory.mktemp("fp") / "pan.h5"
     with H5Writer(path, W, H) as w:
         w.add_events(seq.events)
@@ -51,17 +50,25 @@ def _psnr(out: Path, sharp: np.ndarray) -> float:
                           for m, s in zip(_middles(out), sharp, strict=True)]))
 
 
+def _removed_and_kept(rec: Path, method: str, c: float, tmp_path: Path
+                      ) -> tuple[Path, Path, list[str]]:
+    """`trmd deblur REC --method METHOD` with the pattern removed and kept (16-bit frames):
+    the two outputs and what each run printed."""
+    common = ["--method", method, "--contrast", f"{c:.6f}", "--bit-depth", "16", "--jobs", "1"]
+    outs, said = (tmp_path / "removed", tmp_path / "kept"), []
+    for out, extra in zip(outs, ([], ["--keep-pattern"]), strict=True):
+        r = runner.invoke(app, ["deblur", str(rec), "-o", str(out), *common, *extra])
+        assert r.exit_code == 0, r.output
+        said.append(r.output)
+    return *outs, said
+
+
 def test_deblur_removes_the_pattern_and_gains(panned, tmp_path):
     rec, sharp, _, c = panned
-    common = ["--method", "edi", "--contrast", f"{c:.6f}", "--bit-depth", "16", "--jobs", "1"]
-    removed, kept = tmp_path / "removed", tmp_path / "kept"
-    r = runner.invoke(app, ["deblur", str(rec), "-o", str(removed), *common])
-    assert r.exit_code == 0, r.output
-    assert "removed the sensor's fixed pattern" in r.output and "--keep-pattern keeps it" \
-        in r.output
-    r = runner.invoke(app, ["deblur", str(rec), "-o", str(kept), *common, "--keep-pattern"])
-    assert r.exit_code == 0, r.output
-    assert "fixed pattern" not in r.output
+    removed, kept, (said_removed, said_kept) = _removed_and_kept(rec, "edi", c, tmp_path)
+    assert "removed the sensor's fixed pattern" in said_removed and "--keep-pattern keeps it" \
+        in said_removed
+    assert "fixed pattern" not in said_kept
     # EDI copies the pattern into every frame; without it the middle frames are nearer the
     # sharp ones (measured: 28.80 → 29.38 dB)
     assert _psnr(removed, sharp) > _psnr(kept, sharp) + 0.3
@@ -75,12 +82,7 @@ def test_deblur_removes_the_pattern_and_gains(panned, tmp_path):
 
 def test_motion_method_gains_too(panned, tmp_path):
     rec, sharp, _, c = panned
-    common = ["--method", "motion", "--contrast", f"{c:.6f}", "--bit-depth", "16",
-              "--jobs", "1"]
-    removed, kept = tmp_path / "removed", tmp_path / "kept"
-    for out, extra in ((removed, []), (kept, ["--keep-pattern"])):
-        r = runner.invoke(app, ["deblur", str(rec), "-o", str(out), *common, *extra])
-        assert r.exit_code == 0, r.output
+    removed, kept, _ = _removed_and_kept(rec, "motion", c, tmp_path)
     # measured: 30.80 → 30.93 dB (the prior weighed halfway between the frame's noise as
     # recorded and without the pattern; as recorded it lost 0.36 dB here)
     assert _psnr(removed, sharp) > _psnr(kept, sharp) + 0.05

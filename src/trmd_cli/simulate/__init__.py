@@ -7,7 +7,7 @@ Light at import (numpy only); OpenCV is imported when frames are rendered, torch
 
 from __future__ import annotations
 
-from .blur import ExposureResult, latent_times, run_exposures, uniform_grid
+from .blur import ExposureResult, aps_pattern, latent_times, run_exposures, uniform_grid
 from .sample import (
     DEFAULT_EXPOSURE_US,
     Sample,
@@ -36,6 +36,7 @@ __all__ = [
     "SequencePlan",
     "plan_exposures",
     "ExposureResult",
+    "aps_pattern",
     "run_exposures",
     "uniform_grid",
     "latent_times",

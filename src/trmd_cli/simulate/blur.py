@@ -24,7 +24,17 @@ from ..events import EventStream, Exposure
 from .sensor import EventSensor
 
 __all__ = ["ExposureResult", "latent_times", "uniform_grid", "steps_for_motion",
-           "run_exposures", "grid_blocks"]
+           "run_exposures", "grid_blocks", "aps_pattern"]
+
+
+def aps_pattern(rng: np.random.Generator, width: int, height: int, pixel_sigma: float = 0.012,
+                column_sigma: float = 0.006) -> np.ndarray:
+    """An APS sensor's fixed pattern, to add to every blurry frame of one sensor: each pixel's
+    offset (σ = ``pixel_sigma``) and each column's (σ = ``column_sigma``), intensity in [0, 1]
+    units; (H, W) float32. The defaults are about esl-cups' (2.4 grey levels of 255 found,
+    :mod:`trmd_cli.fixed_pattern`)."""
+    return (rng.normal(0, pixel_sigma, (height, width))
+            + rng.normal(0, column_sigma, (1, width))).astype(np.float32)
 
 
 @dataclass(frozen=True, eq=False)
