@@ -62,3 +62,22 @@ def test_colour_gif_still_writes(tmp_path):
         for _ in range(3):
             vw.append(rng.random((20, 24, 3)).astype(np.float32))
     assert iio.imread(out, index=None).shape[:3] == (3, 20, 24)
+
+
+def test_a_frame_rate_the_video_cannot_play_is_refused(tmp_path):
+    import pytest
+
+    from trmd_cli.errors import InputError
+
+    # a GIF's frames last whole hundredths of a second, and players stretch those under 20 ms
+    with pytest.raises(InputError, match="up to 50 for a .gif"):
+        VideoWriter(tmp_path / "fast.gif", fps=1e9)
+    with pytest.raises(InputError, match="up to 1000 for a .mp4"):
+        VideoWriter(tmp_path / "fast.mp4", fps=1e9)
+    assert not list(tmp_path.iterdir())
+    from PIL import Image
+
+    with VideoWriter(tmp_path / "50.gif", fps=50) as vw:
+        for v in (0.2, 0.8):
+            vw.append(np.full((8, 8), v, np.float32))
+    assert Image.open(tmp_path / "50.gif").info["duration"] == 20

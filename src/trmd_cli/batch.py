@@ -1019,6 +1019,12 @@ class Outcome:
     main: bool
     summary: object = None
 
+    @property
+    def default_contrasts(self) -> int:
+        """Frames whose window held too few events to estimate c from: they took the
+        default."""
+        return sum(not reliable for r in self.reports for *_, reliable in r.contrast_notes)
+
 
 @contextlib.contextmanager
 def _no_progress(label: str, total: int) -> Iterator[Callable[[], None]]:

@@ -650,8 +650,10 @@ def change_agreement(solved: Deconvolved, change: np.ndarray, contrast: float,
     return (1.0 - np.clip(2.0 * rejected, 0.0, 1.0)).astype(np.float32)
 
 
-#: the global contrast gain from which :func:`trust_score` trusts a motion whole (1.05, where
-#: trust begins, and the 0.05 over which it grows)
+#: the global contrast gain below which the events show no clear global motion (EDI is used)
+MIN_GAIN = 1.05
+#: the global contrast gain from which :func:`trust_score` trusts a motion whole (from
+#: :data:`MIN_GAIN`, where trust begins)
 FULL_TRUST_GAIN = 1.1
 
 
@@ -660,7 +662,7 @@ def trust_score(confidence: float) -> float:
     :data:`FULL_TRUST_GAIN` (a small motion sharpens its events little even when exact: 1.13
     along a true path that moves the frame at most 3.3 px from the middle; the data and tile
     tests judge the rest)."""
-    return float(np.clip((confidence - 1.05) / 0.05, 0.0, 1.0))
+    return float(np.clip((confidence - MIN_GAIN) / (FULL_TRUST_GAIN - MIN_GAIN), 0.0, 1.0))
 
 
 #: an estimate whose gain earns only partial trust (:func:`trust_score`) is trusted whole when
@@ -916,7 +918,7 @@ def _motion_deblur(blurry: np.ndarray, events, exposure, fractions, edi_frames: 
             # no background motion holds: the global motion, guarded as on any frame
             tried = True
 
-    if motion.confidence < 1.05 or motion.max_displacement_px(w, h) < 0.25:
+    if motion.confidence < MIN_GAIN or motion.max_displacement_px(w, h) < 0.25:
         said = ("the events are not sharpened by the given motion" if given else
                 "the events show no clear global motion")
         reason = f"{said} (contrast gain {motion.confidence:.2f}): used EDI"

@@ -33,15 +33,25 @@ __all__ = ["CAPPED_NOTE", "HfrFrame", "Edge", "hfr_stream", "exposure_frames", "
 
 
 def check_time_order(exposures: Sequence[Exposure], path: str | Path | None = None) -> None:
-    """A stream needs its exposures in time order (by start, µs).
+    """A stream needs its exposures in time order, one after the other (µs): its frames run
+    from each exposure's start to its end, so an overlap would turn its time back.
 
     Raises:
-        InputError: an exposure starts before the one listed ahead of it.
+        InputError: an exposure starts before the one listed ahead of it, or before that one
+            ends.
     """
-    starts = [e.start_us for e in exposures]
-    if any(b < a for a, b in zip(starts, starts[1:])):  # noqa: B905 - offset pairs
-        raise InputError("the frames are not in time order", path=path,
-                         hint="name the frames so that their numbers follow time")
+    for k in range(1, len(exposures)):
+        a, b = exposures[k - 1], exposures[k]
+        if b.start_us < a.start_us:
+            raise InputError("the frames are not in time order", path=path,
+                             hint="name the frames so that their numbers follow time")
+        if b.start_us < a.end_us:
+            raise InputError(f"exposure windows #{k - 1} [{a.start_us}, {a.end_us}] µs and "
+                             f"#{k} [{b.start_us}, {b.end_us}] µs overlap: the video's time "
+                             "would run backwards", path=path,
+                             hint="check the exposure windows stored with the events; hfr "
+                                  "plays exposures one after the other (deblur takes "
+                                  "overlapping ones)")
 
 
 @dataclass(frozen=True, eq=False)

@@ -98,6 +98,8 @@ def _r(v: float, digits: int = 4) -> float:
 
 def motion_summary(views: MotionViews) -> dict[str, Any]:
     """motion.json: the motion's parameters with their units, and what became of it."""
+    from .deconv import MIN_GAIN
+
     m, e = views.motion, views.exposure
     h, w = views.weight.shape
     per_s = 1e6 / e.duration_us
@@ -127,6 +129,10 @@ def motion_summary(views: MotionViews) -> dict[str, Any]:
                             "max": _r(float(disp.max(initial=0.0)), 3)},
         "start_to_end_meaning": "length of each pixel's displacement from the start of the "
                                 "exposure to its end (what flow.png shows)",
+        "motion_found": bool(m.confidence >= MIN_GAIN),
+        "motion_found_meaning": "the events show a clear global motion (confidence ≥ "
+                                f"{MIN_GAIN}); if not, the parameters above are only the "
+                                "search's best candidate, and EDI's frames are used",
         "confidence": _r(m.confidence),
         "confidence_meaning": "contrast gain of the events carried by the motion over the "
                               "events as recorded (1 = the events show no motion; the "

@@ -12,16 +12,22 @@ __all__ = ["to_microseconds", "collapsed_times", "UNIT_SCALE_US"]
 UNIT_SCALE_US = {"s": 1_000_000, "ms": 1_000, "us": 1, "ns": 0.001}
 
 
+def times_unit(dtype, unit: str | None = None) -> str:
+    """The unit a file's times stored as ``dtype`` are read in: ``unit`` when given, else
+    seconds for floats and µs for integers."""
+    return unit if unit is not None else ("s" if np.dtype(dtype).kind == "f" else "us")
+
+
 def to_microseconds(t: np.ndarray, unit: str | None, first: int = 0) -> np.ndarray:
     """Convert times to int64 µs. ``unit=None``: integers are µs, floats are seconds.
+    Nanoseconds are floored to whole µs; other units are rounded to the nearest µs.
 
     Float seconds are converted relative to nothing (absolute): float64 resolves ~0.24 µs at
     1.6e9 s, so epoch-based timestamps survive to the microsecond. ``first``: the file's index
     of ``t[0]``, for messages.
     """
     t = np.asarray(t)
-    if unit is None:
-        unit = "s" if t.dtype.kind == "f" else "us"
+    unit = times_unit(t.dtype, unit)
     if unit not in UNIT_SCALE_US:
         raise InputError(f"unknown time unit {unit!r}", hint="use s, ms, us or ns")
     if t.dtype.kind not in "iuf":
@@ -38,8 +44,12 @@ def to_microseconds(t: np.ndarray, unit: str | None, first: int = 0) -> np.ndarr
         raise InputError(f"times up to {top:g} {unit} are out of range", hint="check `time_unit`")
     if unit == "us" and t.dtype.kind in "iu":
         return t.astype(np.int64, copy=False)
-    if unit == "ns" and t.dtype.kind in "iu":
-        return t.astype(np.int64) // 1000
+    if unit == "ns":
+        # whole µs is the event stream's resolution: nanoseconds are floored to it, written as
+        # integers or as floats alike (the same time gives the same µs in every format)
+        if t.dtype.kind in "iu":
+            return t.astype(np.int64) // 1000
+        return np.floor(t.astype(np.float64) / 1000.0).astype(np.int64)
     if t.dtype.kind in "iu":
         return t.astype(np.int64) * int(scale)
     return np.rint(t.astype(np.float64) * scale).astype(np.int64)

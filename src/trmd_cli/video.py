@@ -28,6 +28,24 @@ __all__ = ["VideoWriter", "VIDEO_SUFFIXES", "check_video_path"]
 VIDEO_SUFFIXES = (".mp4", ".gif")
 
 
+#: frames per second a GIF can play: its frames last whole hundredths of a second, and
+#: players show those under 20 ms for 100 ms
+MAX_GIF_FPS = 50.0
+#: frames per second an MP4 is written at, at most (players drop frames far below it)
+MAX_MP4_FPS = 1000.0
+
+
+def check_fps(path: str | Path, fps: float) -> float:
+    """``fps``, refused unless a video at ``path`` (.mp4 or .gif) can play at it."""
+    kind = Path(path).suffix.lower()
+    top = MAX_GIF_FPS if kind == ".gif" else MAX_MP4_FPS
+    if not (np.isfinite(fps) and 0 < fps <= top):
+        raise InputError(f"`fps` must be a positive number up to {top:g} for a "
+                         f"{kind or 'video'} file, got {fps:g}",
+                         hint="e.g. `fps=30`" + (" (or write an .mp4)" if kind == ".gif" else ""))
+    return float(fps)
+
+
 def check_video_path(path: str | Path) -> Path:
     """Raise :class:`InputError` unless ``path`` ends in .mp4 or .gif."""
     path = Path(path)
@@ -53,9 +71,7 @@ class VideoWriter:
 
     def __init__(self, path: str | Path, fps: float = 30.0, quality: int = 8) -> None:
         self.path = check_video_path(path)
-        if not (np.isfinite(fps) and fps > 0):
-            raise InputError(f"`fps` must be positive, got {fps}", hint="e.g. `fps=30`")
-        self.fps = float(fps)
+        self.fps = check_fps(self.path, fps)
         self.quality = int(quality)
         self.kind = self.path.suffix.lower()[1:]
         self.count = 0
@@ -100,7 +116,7 @@ class VideoWriter:
             if self.kind == "gif":
                 # GIF timing is in whole centiseconds; Pillow takes milliseconds per frame
                 buffer = io.BytesIO()
-                _write_gif(buffer, np.stack(self._gif), max(20, int(round(1000 / self.fps))))
+                _write_gif(buffer, np.stack(self._gif), int(round(1000 / self.fps)))
                 self._gif = []
                 with open_output(self._tmp) as fh:
                     fh.write(buffer.getbuffer())

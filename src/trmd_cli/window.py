@@ -3,7 +3,10 @@
 One pure function, :func:`resolve_windows`, decides it for every command (deblur, hfr, voxelize),
 first rule that applies:
 
-1. ``exposure=(T0, T1)`` given by the user, in the file's time unit;
+1. ``exposure=(T0, T1)`` given by the user, in ``time_unit``; else numbers with a fraction are
+   seconds and whole numbers are in the unit the file's own times were read in
+   (:attr:`~trmd_cli.read.base.Recording.times_unit`: a file of float seconds, seconds), else
+   µs (:func:`exposure_from_user`);
 2. the exposure windows of frames stored in the recording;
 3. windows stored without frames (npz ``exposure_start`` / ``exposure_end``);
 4. the span of all events, with a warning.
@@ -41,27 +44,45 @@ class WindowPlan(NamedTuple):
     source: str
 
 
-def exposure_from_user(t0: float, t1: float, time_unit: str | None = None) -> Exposure:
+def exposure_from_user(t0: float, t1: float, time_unit: str | None = None,
+                       file_unit: str | None = None) -> Exposure:
     """``exposure=(T0, T1)`` → :class:`Exposure` in µs.
 
-    ``time_unit`` is the file's unit. When None, the values follow the same
-    rule as files: whole numbers are µs, numbers with a fraction are seconds.
+    ``time_unit`` is the unit the user set. When None, the values follow the same rule as
+    files: numbers with a fraction are seconds; whole numbers are in ``file_unit``, the unit
+    the file's own times were read in (a file of float seconds: seconds), else µs. A value
+    that is not a whole number of µs is refused (event times are whole µs: it would be
+    rounded).
     """
     for v in (t0, t1):
         if not np.isfinite(v):
             raise InputError(f"`exposure` value {v} is not a finite number")
     if time_unit is None:
         whole = float(t0).is_integer() and float(t1).is_integer()
-        time_unit = "us" if whole else "s"
+        time_unit = (file_unit or "us") if whole else "s"
     unit = time_unit.replace("µs", "us")
     if unit not in UNIT_SCALE_US:
         raise InputError(f"unknown time unit {time_unit!r}", hint="use s, ms, us or ns")
     scale = UNIT_SCALE_US[unit]
+    for v in (t0, t1):
+        # as for the file's times (:func:`~trmd_cli.units.to_microseconds`): beyond ±2**62 µs
+        # (≈146 000 years) a value is a unit mistake, and int64 time overflows
+        if abs(float(v)) * scale >= 2.0**62:
+            raise InputError(f"`exposure` value {v:g} {unit} is out of range",
+                             hint="give T0 T1 in µs (whole numbers) or s, or set `time_unit`")
+    for v in (t0, t1):
+        us = float(v) * scale
+        if abs(us - round(us)) > max(1e-3, 4 * float(np.spacing(abs(us)))):
+            # event times are whole µs: a window between them would be rounded, silently
+            raise InputError(f"`exposure` value {v:g} {unit} is {us:g} µs, not a whole number "
+                             "of microseconds",
+                             hint="give T0 T1 in whole µs, or set `time_unit`")
     start, end = (int(round(float(v) * scale)) for v in (t0, t1))
     if end <= start:
         raise InputError(f"`exposure=({t0}, {t1})` is empty or reversed "
                          f"({start}..{end} µs after `time_unit` {unit})",
-                         hint="give T1 > T0 in the file's time unit (see `time_unit`)")
+                         hint="give T1 > T0 (whole numbers are µs, others s, unless `time_unit` "
+                         "is set)")
     return Exposure(start, end)
 
 
@@ -88,7 +109,8 @@ def resolve_windows(
     Args:
         recording: a :class:`~trmd_cli.read.base.Recording` (only ``time_range_us``,
             ``frame_exposures``, ``stored_windows``, ``num_events`` and ``path`` are used).
-        exposure: ``(T0, T1)`` in the file's time unit, or an :class:`Exposure` already in µs.
+        exposure: ``(T0, T1)`` in ``time_unit`` (None: see :func:`exposure_from_user`, with
+            the recording's ``times_unit``), or an :class:`Exposure` already in µs.
         time_unit: the file's time unit for ``exposure``; see
             :func:`exposure_from_user`.
         offset_us: added to every window: moves the exposure relative to
@@ -111,7 +133,7 @@ def resolve_windows(
 
     if exposure is not None:
         win = exposure if isinstance(exposure, Exposure) else exposure_from_user(
-            float(exposure[0]), float(exposure[1]), time_unit)
+            float(exposure[0]), float(exposure[1]), time_unit, recording.times_unit)
         win = win.shifted(offset_us) if offset_us else win
         check_in_range(win, trange, "exposure window", path)
         _warn_partial([win], trange, warnings)
@@ -139,7 +161,8 @@ def resolve_windows(
     if outside:
         warnings.append(
             f"{len(outside)} of {len(windows)} exposure windows lie outside the events' time "
-            f"range (first: #{outside[0]}); those frames are passed through unchanged")
+            f"range (first: #{outside[0]}): they hold no events (deblur passes their frames "
+            "through unchanged; their voxels are zero)")
     skip = set(outside)
     _warn_partial([w for i, w in enumerate(windows) if i not in skip], trange, warnings)
     return WindowPlan(windows, warnings, source)

@@ -60,10 +60,13 @@ _UMASK = _umask()
 
 
 def check_output(path: str | Path, overwrite: bool,
-                 inputs: Iterable[str | Path | None] = ()) -> Path:
+                 inputs: Iterable[str | Path | None] = (), *, folder: bool | None = None
+                 ) -> Path:
     """Refuse an output that exists and is not an empty folder, unless ``overwrite``; refuse,
     whatever ``overwrite`` says, an output that is one of ``inputs`` or a folder holding one
-    (writing it would destroy what is being read).
+    (writing it would destroy what is being read), and, ``folder`` given, one that exists as
+    the other kind (a folder output over a file, a file output over a folder: ``overwrite``
+    replaces an output, never a thing of another kind the user may have meant to keep).
 
     Also removes what killed runs left while writing this same output (see
     :func:`sweep_stale_temps`). Nothing is touched before the checks that refuse.
@@ -76,6 +79,11 @@ def check_output(path: str | Path, overwrite: bool,
                          hint="choose an output inside a folder")
     if parent.is_dir():
         sweep_stale_temps(path)
+    if folder is not None and path.exists() and path.is_dir() != folder:
+        raise InputError("the output exists and is not a folder" if folder else
+                         "the output exists and is a folder, but a file is to be written here",
+                         path=path, hint="choose a folder path" if folder else
+                         "give a file name, or remove the folder")
     if path.exists() and not overwrite:
         if not (path.is_dir() and not any(path.iterdir())):
             raise OutputExistsError("output already exists", path=path,
@@ -421,14 +429,6 @@ def to_uint(image: np.ndarray, bit_depth: int = 8) -> np.ndarray:
     return out.astype(np.uint8 if bit_depth == 8 else np.uint16)
 
 
-def _encode(path: Path, image: np.ndarray, bit_depth: int) -> None:
-    """Encode in memory, then write the bytes ourselves: ``cv2.imwrite`` on a full disk may
-    report success over a short file."""
-    data = _image_bytes(path, image, bit_depth)
-    with open_output(path) as fh:
-        fh.write(data)
-
-
 def _image_bytes(path: Path, image: np.ndarray, bit_depth: int) -> bytes:
     """The encoded file of ``image`` in the format ``path``'s suffix names."""
     import cv2
@@ -448,9 +448,25 @@ def _image_bytes(path: Path, image: np.ndarray, bit_depth: int) -> bytes:
 
 def write_image(path: str | Path, image: np.ndarray, bit_depth: int = 8) -> Path:
     """Write a [0, 1] float (or uint8/uint16) image, (H, W) or (H, W, 3) RGB, atomically."""
+    path = check_image_suffix(path)
+    # encoded in memory before the temporary file exists (an error names the path the user
+    # gave), then written by us: ``cv2.imwrite`` on a full disk may report success over a
+    # short file
+    data = _image_bytes(path, image, bit_depth)
+    with atomic_path(path) as tmp, open_output(tmp) as fh:
+        fh.write(data)
+    return path
+
+
+def check_image_suffix(path: str | Path) -> Path:
+    """``path``, refused unless its suffix names an image format trmd writes (check it before
+    any work whose result the picture goes with)."""
+    from .read.frames import IMAGE_EXTENSIONS
+
     path = Path(path)
-    with atomic_path(path) as tmp:
-        _encode(tmp, image, bit_depth)
+    if path.suffix.lower() not in IMAGE_EXTENSIONS:
+        raise InputError(f"cannot write a {path.suffix or 'suffix-less'} picture", path=path,
+                         hint="use .png, .jpg or .tif")
     return path
 
 
@@ -510,6 +526,14 @@ def clipped_message(fraction: float) -> str | None:
     if fraction < CLIPPED_WORTH_SAYING:
         return None
     return f"{100 * fraction:.2f} % of output values were above 1 and were clipped to white"
+
+
+def _contrast_origin(estimate) -> dict:
+    """meta.json's word on where c came from: estimated, or the default a window with too few
+    events to estimate from fell back to (``contrast_default``), else given."""
+    default = estimate.contrast_estimated and not estimate.contrast_reliable
+    return {"contrast_estimated": estimate.contrast_estimated and not default,
+            **({"contrast_default": True} if default else {})}
 
 
 def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: int = 8,
@@ -574,7 +598,7 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
             "frames": len(frames),
             "fractions": [float(t) for t in result.instants_us],
             "contrast": result.estimate.contrast,
-            "contrast_estimated": result.estimate.contrast_estimated,
+            **_contrast_origin(result.estimate),
             # net counts per pixel and bin: the events are at least this many
             "abs_count": result.num_events,
             "passthrough": result.passthrough,
@@ -588,7 +612,7 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
             "frames": len(frames),
             "instants_us": [float(t) for t in result.instants_us],
             "contrast": result.estimate.contrast,
-            "contrast_estimated": result.estimate.contrast_estimated,
+            **_contrast_origin(result.estimate),
             **({} if result.estimate.fallback_contrast is None else
                {"fallback_contrast": result.estimate.fallback_contrast}),
             "events": result.num_events,

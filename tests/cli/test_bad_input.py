@@ -282,8 +282,9 @@ CASES = [
     # ---- Prophesee .dat
     Case("dat-cut-mid-record", lambda d: _w(d / "c.dat", good(d, "dat").read_bytes()[:-5]),
          "partial 8-byte event record"),
+    # cut inside a header line: nothing after it to take for event data
     Case("dat-cut-in-header", lambda d: _w(d / "c.dat", good(d, "dat").read_bytes()[:40]),
-         "no event type/size"),
+         "ends inside its header"),
     Case("dat-cut-in-type-bytes", lambda d: _w(d / "c.dat", good(d, "dat").read_bytes()[:51]),
          "no event type/size"),
     Case("dat-bad-polarity", lambda d: _w(d / "p.dat", flipped(good(d, "dat").read_bytes(),
@@ -348,7 +349,7 @@ CASES = [
            "goes back in time"),
           ("evt2.raw", "cut-50%", lambda b: b[:1_054_571], "partial 32-bit word"),
           ("evt2.raw", "flip-300", lambda b: flipped(b, 300, 64), "outside the 640x480"),
-          ("gen4.dat", "cut-in-header", lambda b: b[:20], "no event lines|no event type"),
+          ("gen4.dat", "cut-in-header", lambda b: b[:20], "ends inside its header"),
           ("gen4.dat", "cut-1%", lambda b: cut(b, 0.01), "partial 8-byte event record"),
           ("gen4.dat", "flip-10000", lambda b: flipped(b, 10_000, 64), "polarity 15"),
       ]],

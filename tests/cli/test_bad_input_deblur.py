@@ -285,6 +285,16 @@ CASES = [
         "1000", "2000"), "lies outside the events' time range", names="{-1}"),
     Case("exposure-reversed", lambda d, g: _img_ev(g.image, g, "--exposure", "30000", "20000"),
          "empty or reversed", names="--exposure"),
+    Case("exposure-out-of-range", lambda d, g: _img_ev(g.image, g, "--exposure", "0", "1e25"),
+         "out of range", names="--exposure"),
+    Case("time-offset-fraction-of-a-microsecond", lambda d, g: (
+        [g.recording], ["--time-offset=-0.004"]), "not a whole number of microseconds",
+         names="-0.004"),
+    Case("hfr-overlapping-windows", lambda d, g: (
+        [g.folder, _as_events(d, stream(), [Exposure(e.start_us - 40_000 * (k > 0),
+                                                     e.end_us) for k, e in
+                                            enumerate(EXPOSURES)])], []),
+         r"#0 \[10000, 30000\] µs and #1 \[20000, 80000\] µs overlap", commands=("hfr",)),
     Case("time-offset-moves-every-window-out", lambda d, g: ([g.recording],
                                                               ["--time-offset", "10s"]),
          "lies outside the events' time range"),

@@ -88,7 +88,25 @@ def test_auto_contrast_is_printed_and_recorded(pair, tmp_path):
     assert r.exit_code == 0, r.output
     meta = json.loads((tmp_path / "o" / "meta.json").read_text())
     assert meta["contrast_estimated"] and f"c = {meta['contrast']:.3f}" in r.stdout
-    assert 0.1 < meta["contrast"] < 0.4
+    assert 0.1 < meta["contrast"] < 0.4 and "contrast_default" not in meta
+
+
+def test_a_default_contrast_is_not_called_estimated(pair, tmp_path):
+    """A window with too few events falls back to the default c: the run says so, and
+    meta.json marks it as the default, not as an estimate."""
+    img, ev = pair
+    few = tmp_path / "few.npz"
+    with np.load(ev) as z:
+        keep = {k: z[k] for k in z.files}
+    for k in ("x", "y", "t", "p"):
+        keep[k] = keep[k][::200]  # a few hundred events: under the estimate's 2000
+    np.savez(few, **keep)
+    r = run(img, few, "-o", tmp_path / "o", "--method", "edi")
+    assert r.exit_code == 0, r.output
+    meta = json.loads((tmp_path / "o" / "meta.json").read_text())
+    assert meta["contrast"] == 0.25
+    assert meta["contrast_default"] is True and meta["contrast_estimated"] is False
+    assert "c = 0.250 (the default: too few events to estimate it)" in r.stdout
 
 
 def test_keep_isolated_is_recorded_and_changes_the_frames(pair, tmp_path):
@@ -312,6 +330,29 @@ def test_window_rules_in_order(sample):
     assert plan.source == "span" and plan.windows == [Exposure(first, last)] and plan.warnings
     # the time offset moves every window
     assert resolve_windows(rec, offset_us=-500).windows == [w.shifted(-500) for w in framed]
+
+
+def test_a_window_is_read_in_the_files_unit_and_never_rounded(sample):
+    from dataclasses import replace
+
+    from trmd_cli.errors import InputError
+    from trmd_cli.window import resolve_windows
+
+    ev = sample.events
+    first, _ = ev.time_range_us
+    seconds = replace(_memory(ev), times_unit="s")  # a file of float seconds
+    assert resolve_windows(seconds, (0, 1)).windows == [Exposure(0, 1_000_000)]
+    whole_us = replace(_memory(ev), times_unit="us")  # a file of integer µs
+    assert resolve_windows(whole_us, (first, first + 20)).windows == \
+        [Exposure(first, first + 20)]
+    # a fraction still says seconds, as in files; µs set by the user must be whole
+    assert resolve_windows(whole_us, (0.001, 0.002)).windows == [Exposure(1000, 2000)]
+    with pytest.raises(InputError, match=r"\.5 µs, not a whole number of microseconds"):
+        resolve_windows(whole_us, (first, first + 20.5), "us")
+    with pytest.raises(InputError, match="out of range"):
+        resolve_windows(whole_us, (0, 1e25))
+    # --time-unit wins over the file's
+    assert resolve_windows(seconds, (1, 2), "ms").windows == [Exposure(1000, 2000)]
 
 
 def test_window_outside_the_events_is_bad_input(sample):

@@ -393,6 +393,23 @@ def test_cli_strips(gt_h5, tmp_path):
     assert img.shape[:2] == (48, 3 * 64 + 2 * 4)
 
 
+def test_cli_outputs_of_the_wrong_kind_are_refused_before_any_work(gt_h5, tmp_path):
+    same = tmp_path / "same"
+    r = run("eval", gt_h5, "--methods", "blurry", "--strip", same, "--json", same)
+    assert r.exit_code == 2 and "--json and --strip name the same path" in r.output
+    assert not same.exists()
+    kept = tmp_path / "notes.txt"
+    kept.write_text("the user's file")
+    r = run("eval", gt_h5, "--methods", "blurry", "--strip", kept, "--overwrite")
+    assert r.exit_code == 2 and "exists and is not a folder" in r.output
+    assert kept.read_text() == "the user's file"
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    r = run("eval", gt_h5, "--methods", "blurry", "--json", folder, "--overwrite")
+    assert r.exit_code == 2 and "is a folder, but a file is to be written here" in r.output
+    assert folder.is_dir() and not any(folder.iterdir())
+
+
 def test_cli_bad_input(gt_h5, nogt_h5, tmp_path):
     out = tmp_path / "x.json"
     r = run("eval", nogt_h5, "--gt", "--methods", "blurry", "--json", out)

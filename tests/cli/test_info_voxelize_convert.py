@@ -94,6 +94,9 @@ def test_convert_round_trips(npz, tmp_path):
     (["voxelize", "{npz}", "-o", "{tmp}/v.npz", "--sensor", "10x10"], "outside the sensor"),
     (["info", "{npz}", "--time-unit", "days"], "--time-unit"),
     (["convert", "{npz}", "-o", "{tmp}/x.png"], "unknown output type"),
+    # the picture's type is checked before the voxels are written, and named as given
+    (["voxelize", "{npz}", "-o", "{tmp}/v.npz", "--preview", "{tmp}/p.txt"],
+     "p.txt: cannot write a .txt picture"),
 ])
 def test_bad_input_one_line_exit_2(npz, tmp_path, args, needle):
     path, _ = npz
@@ -177,3 +180,21 @@ def test_convert_to_h5_keeps_windows_stored_without_frames(tmp_path, rng, source
         assert sb["exposure_source"] == sa["exposure_source"] == "windows"
         assert [(f["start_us"], f["end_us"], f["events"]) for f in sb["frames"]] == \
             [(f["start_us"], f["end_us"], f["events"]) for f in sa["frames"]]
+
+
+def test_convert_says_what_the_target_does_not_keep(tmp_path, rng):
+    """The simulator's ground truth does not travel through convert, and frames do not fit an
+    .npz: both are said, not dropped unsaid."""
+    from trmd_cli.write import write_h5
+
+    s = random_stream(rng)
+    frames = np.full((1, s.height, s.width), 0.5, np.float32)
+    src = write_h5(tmp_path / "sim.h5", s, blurry=frames, exposures=[Exposure(1_000, 40_000)],
+                   sharp=np.repeat(frames[:, None], 3, axis=1))
+    r = runner.invoke(app, ["convert", str(src), "-o", str(tmp_path / "copy.h5")])
+    assert r.exit_code == 0 and "ground truth" in r.output and "not converted" in r.output
+    r = runner.invoke(app, ["convert", str(src), "-o", str(tmp_path / "ev.npz")])
+    assert r.exit_code == 0 and "the 1 frame(s) are dropped" in r.output
+    plain = write_h5(tmp_path / "plain.h5", s)
+    r = runner.invoke(app, ["convert", str(plain), "-o", str(tmp_path / "plain2.h5")])
+    assert r.exit_code == 0 and "warning" not in r.output

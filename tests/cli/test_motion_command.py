@@ -3,6 +3,7 @@ numbers; bad input ends in one error line and leaves no output."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -120,3 +121,30 @@ def test_bad_input_gives_one_line(translation, tmp_path):
                             str(out)])
     assert_one_error_line(r, str(out.name), "exists")
     assert (out / "keep.txt").read_text() == "mine" and len(list(out.iterdir())) == 1
+
+
+def test_no_clear_motion_is_said_and_marked(translation, tmp_path):
+    """Every event at one instant: nothing moves them, so the search's best candidate is no
+    motion found, and the line and motion.json say so instead of reporting its velocity."""
+    from trmd_cli.read import ReadOptions, open_events
+
+    d, _ = translation
+    with open_events(d / "events.npz", ReadOptions()) as rec:
+        ev = rec.events()
+        e = rec.stored_windows()[0]
+    at_once = dataclasses.replace(ev, t=np.full(len(ev), int(e.mid_us), np.int64))
+    write_events_npz(tmp_path / "still.npz", at_once, [e])
+    out = tmp_path / "m"
+    r = runner.invoke(app, ["motion", str(d / "blurry.png"), str(tmp_path / "still.npz"), "-o",
+                            str(out)])
+    assert r.exit_code == 0, r.output
+    assert "no clear global motion in the events" in r.output
+    m = json.loads((out / "motion.json").read_text())
+    assert m["motion_found"] is False and m["confidence"] < 1.05
+    assert m["deconvolution_share"] == 0.0
+
+
+def test_a_clear_motion_is_marked_found(result):
+    out, _, r = result
+    assert json.loads((out / "motion.json").read_text())["motion_found"] is True
+    assert "no clear global motion" not in r.output

@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 from tests.helpers.cli import assert_one_error_line
 from trmd_cli.cli.app import app
 from trmd_cli.cli.boundary import as_flags
-from trmd_cli.cli.options import parse_exposure_length_us, read_options
+from trmd_cli.cli.options import parse_duration_us, parse_exposure_length_us, read_options
 from trmd_cli.errors import InputError
 
 runner = CliRunner()
@@ -29,6 +29,22 @@ def test_exposure_length_is_exact(text, us):
 def test_bad_exposure_length(text, needle):
     with pytest.raises(InputError, match=needle):
         parse_exposure_length_us(text)
+
+
+@pytest.mark.parametrize("text,us", [("-40ms", -40_000), ("1.5s", 1_500_000), ("250", 250),
+                                     ("-0.004s", -4_000), ("1e3us", 1_000), ("2000ns", 2),
+                                     (".5ms", 500)])
+def test_time_offset_is_exact(text, us):
+    assert parse_duration_us(text) == us
+
+
+@pytest.mark.parametrize("text,needle", [("-0.004", "-0.004 µs .a number without a unit is µs"),
+                                         ("1.5us", "not a whole number"),
+                                         ("1ns", "0.001 µs"), ("1e30s", "out of range"),
+                                         ("soon", "not a duration")])
+def test_bad_time_offset_is_refused_not_rounded(text, needle):
+    with pytest.raises(InputError, match=needle):
+        parse_duration_us(text)
 
 
 def test_options_reach_read_options():

@@ -82,6 +82,9 @@ def test_text_round_trip(tmp_path, rng):
     ("0.1 1 1 1\nnan 1 1 1\n", "non-finite"),
     ("-0.1 1 1 1\n", "negative"),
     ("0.1 1 1 1\n0.2 oops 1 1\n", "malformed"),
+    # a first line with one bad field is an event line, not a header to skip unsaid
+    ("1 1 2 x\n2 3 4 0\n", "malformed event line 1"),
+    ("1,1,2,1O\n2,3,4,0\n", "malformed event line 1"),
     ("0.1 1 1\n", "columns"),
     ("0.1 1 1 7\n", "polarity"),
     ("# nothing here\n", "no event lines"),
@@ -91,6 +94,42 @@ def test_text_bad(tmp_path, body, msg):
     f.write_text(body)
     with pytest.raises((InputError, FormatError), match=msg):
         open_events(f)
+
+
+def test_text_byte_order_mark_and_headers_keep_every_event(tmp_path):
+    for name, data in (("bom.txt", b"\xef\xbb\xbf1 1 2 1\n2 3 4 0\n"),
+                       ("bom_header.csv", b"\xef\xbb\xbft,x,y,p\n1,1,2,1\n2,3,4,0\n"),
+                       ("words.txt", b"Width: 346 Height: 260\n1 1 2 1\n2 3 4 0\n")):
+        (tmp_path / name).write_bytes(data)
+        s = open_events(tmp_path / name, ReadOptions(sensor=(8, 8))).events()
+        assert s.t.tolist() == [1, 2] and s.x.tolist() == [1, 3], name
+
+
+def test_nanoseconds_floor_to_the_same_microseconds_in_every_format(tmp_path):
+    ns = np.array([1500, 2500, 3999, 4000])
+    assert to_microseconds(ns, "ns").tolist() == [1, 2, 3, 4]
+    assert to_microseconds(ns.astype(np.float64), "ns").tolist() == [1, 2, 3, 4]
+    (tmp_path / "ns.txt").write_text("".join(f"{t} 1 2 1\n" for t in ns))
+    np.savez(tmp_path / "ns.npz", x=np.ones(4, int), y=np.full(4, 2), t=ns, p=np.ones(4, int))
+    for name in ("ns.txt", "ns.npz"):
+        s = open_events(tmp_path / name, ReadOptions(time_unit="ns", sensor=(4, 4))).events()
+        assert s.t.tolist() == [1, 2, 3, 4], name
+
+
+def test_files_say_which_unit_their_times_were_read_in(tmp_path):
+    s = make_stream(np.array([1, 2]), np.array([1, 2]), np.array([10, 2_000_000]),
+                    np.array([1, 0]), 4, 4)
+    write_events_npz(tmp_path / "us.npz", s)
+    np.savez(tmp_path / "s.npz", x=s.x, y=s.y, t=s.t / 1e6, p=np.array([1, 0]))
+    write_h5(tmp_path / "us.h5", s)
+    (tmp_path / "s.txt").write_text("0.00001 1 1 1\n2.0 2 2 0\n")
+    (tmp_path / "us.txt").write_text("10 1 1 1\n2000000 2 2 0\n")
+    for name, unit in (("us.npz", "us"), ("s.npz", "s"), ("us.h5", "us"), ("s.txt", "s"),
+                       ("us.txt", "us")):
+        with open_events(tmp_path / name, ReadOptions(sensor=(4, 4))) as rec:
+            assert rec.times_unit == unit, name
+    with open_events(tmp_path / "us.npz", ReadOptions(time_unit="ms")) as rec:
+        assert rec.times_unit == "ms"
 
 
 def test_coordinates_outside_sensor(tmp_path):

@@ -81,6 +81,15 @@ def test_frame_folder_with_fps(tmp_path):
         assert f["frames"]["blurry"].shape == (2, 45, 60)  # at 0 and 36 ms
 
 
+def test_a_frame_count_that_does_not_fit_is_said(tmp_path):
+    folder = make_folder(tmp_path / "frames")
+    r = run("simulate", folder, "-o", tmp_path / "f.h5", "--fps", "50", "--size", "60x45",
+            "--clean", "--exposure-ms", "30", "--frames", "50")
+    assert r.exit_code == 0, r.output
+    assert "--frames 50: only 2 exposure(s) of 30 ms fit in the 80 ms the source spans" in \
+        r.output
+
+
 def test_frame_folder_with_timestamps(tmp_path):
     folder = make_folder(tmp_path / "frames", count=4)
     ts = tmp_path / "ts.txt"
@@ -165,13 +174,27 @@ def test_training_set_options_mapping():
     (["{folder}", "--fps", "50", "--exposure-ms", "500"], "does not fit"),
     (["{still}", "--size", "abc"], "not WxH"),
     (["{folder}", "--timestamps", "{bad_ts}"], "timestamps for 5 frames"),
+    # numbers the simulator cannot use are named by their option, never an internal error
+    (["{still}", "--exposure-ms", "nan"], "--exposure-ms must be a finite number"),
+    (["{still}", "--exposure-ms", "inf"], "--exposure-ms must be a finite number"),
+    (["{still}", "--exposure-ms", "0.0001"], "at least 0.002 ms"),
+    (["{still}", "--seed", "-1"], "--seed must be 0 or more"),
+    (["{still}", "--read-noise", "inf"], "--read-noise must be a finite number"),
+    (["{still}", "--motion-px", "inf"], "--motion-px must be a finite number"),
+    (["{folder}", "--fps", "nan"], "--fps must be a positive finite number"),
+    (["{still}", "--size", "0x48"], "--size '0x48' is not WxH"),
+    (["{still}", "--size", "8x8"], "outside 16x16"),
+    (["{still}", "--size", "100000x100000"], "outside 16x16"),
+    (["{folder}", "--timestamps", "{us_ts}"], "are the times in ms or µs"),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, still, args, message):
     folder = make_folder(tmp_path / "frames")
     bad_ts = tmp_path / "bad.txt"
     bad_ts.write_text("0\n0.1\n")
+    us_ts = tmp_path / "us.txt"
+    us_ts.write_text("".join(f"{33_000 * k}\n" for k in range(5)))
     out = tmp_path / "out.h5"
-    args = [a.format(folder=folder, still=still, bad_ts=bad_ts) for a in args]
+    args = [a.format(folder=folder, still=still, bad_ts=bad_ts, us_ts=us_ts) for a in args]
     if args[0] == "missing.png":
         args[0] = str(tmp_path / "missing.png")
     r = run("simulate", *args, "-o", out)

@@ -115,6 +115,19 @@ def test_overrides_parse_toml_values_and_bare_words(tmp_path):
         apply_overrides(r, ["train.steps=0"])
 
 
+def test_a_bad_override_is_blamed_on_the_override_not_the_file(tmp_path):
+    path = write(tmp_path, "")
+    with pytest.raises(InputError, match=r"train.steps = 'abc'.*after the overrides "
+                       r"train.steps=abc") as e:
+        load_recipe(path, overrides=["train.steps=abc"])
+    assert e.value.path is None
+    with pytest.raises(InputError, match="after the overrides optim.lr=nan"):
+        apply_overrides(load_recipe(path), ["optim.lr=nan"])
+    with pytest.raises(InputError) as e:  # the file's own fault still names the file
+        load_recipe(write(tmp_path, "[train]\nsteps = -5\n"), overrides=["optim.lr=1e-3"])
+    assert e.value.path is not None and "overrides" not in str(e.value)
+
+
 def test_to_dict_round_trips_through_json(tmp_path):
     r = load_recipe(write(tmp_path, "[loss]\nmiddle = 2.0\n[data.simulator]\nnoise = 0.1"))
     back = recipe_from_dict(json.loads(json.dumps(r.to_dict())), base_dir=r.base_dir)

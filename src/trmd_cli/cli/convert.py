@@ -37,6 +37,7 @@ def convert(
     """Convert events (and frames with exposure windows, for .h5) to npz, HDF5 or text."""
     from ..errors import InputError
     from ..read import open_events
+    from ..read.hdf5 import HDF5Recording
     from ..read.paths import check_input_path
     from ..write import H5Writer, check_output, write_events_npz, write_events_text
 
@@ -54,6 +55,9 @@ def convert(
         if n == 0:
             raise InputError("the recording holds no events: nothing to convert", path=source,
                              hint="check the file (trmd info), or a truncated copy")
+        if isinstance(rec, HDF5Recording) and rec.has_ground_truth:
+            warn("the simulator's ground truth (sharp frames, true contrast and camera path) is "
+                 "not converted: `trmd eval` needs the original file")
         if kind in (".h5", ".hdf5"):
             with H5Writer(output, rec.width, rec.height) as w:
                 for chunk in rec.iter_chunks():
@@ -79,6 +83,10 @@ def convert(
             stream = rec.events()
             windows = rec.frame_exposures() or rec.stored_windows()
             if kind == ".npz":
+                frames = len(rec.frame_exposures())
+                if frames:
+                    warn(f"npz output keeps events and exposure windows; the {frames} frame(s) "
+                         "are dropped (convert to .h5 to keep them)")
                 write_events_npz(output, stream, windows)
             else:
                 if windows:

@@ -57,7 +57,7 @@ Contrast = Annotated[str, typer.Option(
     "one for the recording from its busiest frames; 'frame': estimate it for every frame.")]
 TimeOffset = Annotated[str | None, typer.Option(
     "--time-offset", help="Shift the exposure window(s) relative to the events, e.g. -40ms "
-    "(real DAVIS data often needs tens of ms).")]
+    "(real DAVIS data often needs tens of ms; a number without a unit is µs).")]
 Weights = Annotated[Path | None, typer.Option("--weights", help="RE-Net weights "
                                                  "(.safetensors) for trmd and fused; without "
                                                  "--method it implies one of them. Default: "
@@ -104,7 +104,8 @@ def parse_contrast(text: str) -> float | None:
         raise InputError(f"--contrast {text!r} is not a number, 'auto' or 'frame'",
                          hint="e.g. --contrast 0.25, or --contrast auto") from None
     if not (value > 0 and value < 10):
-        raise InputError(f"--contrast {text} must be a positive number (typically 0.1–0.5)",
+        raise InputError(f"--contrast {text} must be a positive number below 10 "
+                         "(typically 0.1–0.5)",
                          hint="e.g. --contrast 0.25, or --contrast auto")
     return value
 
@@ -209,7 +210,7 @@ def deblur(
     from ..methods import make_method
     from ..overlap import ahead
     from ..read.inputs import open_inputs
-    from ..video import VIDEO_SUFFIXES, VideoWriter, check_video_path
+    from ..video import VIDEO_SUFFIXES, VideoWriter, check_fps, check_video_path
     from ..write import atomic_dir, check_output, write_json, write_result_folder
 
     # every option is checked before any file is opened or written
@@ -223,6 +224,8 @@ def deblur(
                            fixed_pattern=remove_pattern)
     if video is not None and not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 10")
+    if video is not None and Path(video).suffix.lower() in VIDEO_SUFFIXES:
+        check_fps(video, fps)
     offset = parse_duration_us(time_offset) if time_offset else 0
     opts = read_options(columns, one_based, time_unit, sensor, exposure_length, stamp, topics)
     if output.suffix.lower() in VIDEO_SUFFIXES and not output.is_dir():
@@ -253,10 +256,7 @@ def deblur(
             if len(run.plan.items) > 1:
                 typer.echo(f"  from {len(run.plan.items)} recordings, one folder each")
         return
-    check_output(output, overwrite, inputs=[*inputs, weights])
-    if output.exists() and not output.is_dir():
-        raise InputError("the output exists and is not a folder", path=output,
-                         hint="choose a folder path for -o")
+    check_output(output, overwrite, inputs=[*inputs, weights], folder=True)
     if video is not None:
         check_video_path(video)
         # a video inside the output folder would go with the folder it replaces
@@ -334,8 +334,10 @@ def _report(summary: list[dict], method: str, n: int, output: Path, video: Path 
     settled = [d for d in recordings if d is not None and d.contrast is not None]
     used = [s["contrast"] for s in summary if s["contrast"] is not None]
     auto = any(s["contrast_estimated"] for s in summary)
+    default = any(s.get("contrast_default", False) for s in summary)
     if used and len(settled) < len(recordings):
-        kind = "estimated" if auto else "given"
+        kind = "estimated" if auto else \
+            "the default: too few events to estimate it" if default else "given"
         if len(used) == 1:
             typer.echo(f"contrast threshold c = {used[0]:.3f} ({kind})")
         elif len(set(used)) == 1:

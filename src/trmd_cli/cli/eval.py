@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -88,6 +89,7 @@ def eval_command(
     for motion-true-path."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
+    from ..errors import InputError
     from ..evaluate import evaluate, parse_methods
     from ..read.paths import check_input_path
     from ..write import atomic_dir, check_output, write_json
@@ -97,10 +99,14 @@ def eval_command(
     chosen = parse_methods(methods)
     if weights is not None and not {"trmd", "fused"} & set(chosen):
         warn("--weights is ignored: neither trmd nor fused is among --methods")
+    if json_out is not None and strip is not None and \
+            os.path.abspath(json_out) == os.path.abspath(strip):
+        raise InputError("--json and --strip name the same path", path=strip,
+                         hint="give the JSON file and the strips' folder different names")
     if json_out is not None:
-        check_output(json_out, overwrite, inputs=[*datasets, weights])
+        check_output(json_out, overwrite, inputs=[*datasets, weights], folder=False)
     if strip is not None:
-        check_output(strip, overwrite, inputs=[*datasets, weights])
+        check_output(strip, overwrite, inputs=[*datasets, weights], folder=True)
     options = read_options(columns, one_based, time_unit, sensor,
                            exposure_length, stamp, topics)
     progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),

@@ -138,7 +138,7 @@ def hfr(
     from ..methods import make_method
     from ..overlap import ahead
     from ..read.inputs import open_inputs
-    from ..video import VIDEO_SUFFIXES, VideoWriter
+    from ..video import VIDEO_SUFFIXES, VideoWriter, check_fps
     from ..write import (
         atomic_dir,
         check_output,
@@ -164,6 +164,8 @@ def hfr(
     offset = parse_duration_us(time_offset) if time_offset else 0
     opts = read_options(columns, one_based, time_unit, sensor, exposure_length, stamp, topics)
     as_video = output.suffix.lower() in VIDEO_SUFFIXES
+    if as_video:
+        check_fps(output, fps)
     if recordings is not None:
         if as_video:
             raise InputError("-o names a video, but several recordings give one output each",
@@ -201,7 +203,7 @@ def hfr(
                 warn(CAPPED_NOTE)
             _report(output, done.exposure, done.gap, done.contrasts, done.clipped,
                     config.contrast, fps, meta["method"], meta["n"], len(run.plan.items),
-                    [it.settled for it in run.plan.items])
+                    [it.settled for it in run.plan.items], run.default_contrasts)
         return
     check_output(output, overwrite, inputs=[*inputs, weights])
 
@@ -259,13 +261,14 @@ def hfr(
     for note in [*contrast_notes.lines(), *notes]:
         warn(note)
     _report(output, count["exposure"], count["gap"], contrasts, clipped, config.contrast,
-            fps, est.name, est.n, 1, [settled])
+            fps, est.name, est.n, 1, [settled], contrast_notes.defaults)
 
 
 def _report(output: Path, exposure: int, gap: int, contrasts: Sequence[float],
             clipped: Sequence[float], given: float | None, fps: float, method: str,
-            n: int, recordings: int = 1, settled: Sequence = ()) -> None:
-    """``settled``: what was settled for each recording (a ``Settled``) or None."""
+            n: int, recordings: int = 1, settled: Sequence = (), defaults: int = 0) -> None:
+    """``settled``: what was settled for each recording (a ``Settled``) or None;
+    ``defaults``: exposures that took the default c (too few events to estimate it)."""
     from ..write import clipped_message
 
     for done in settled:
@@ -275,7 +278,9 @@ def _report(output: Path, exposure: int, gap: int, contrasts: Sequence[float],
                                           for d in settled)):
         import numpy as np
 
-        kind = "given" if given is not None else "estimated"
+        kind = "given" if given is not None else "estimated" if defaults == 0 else \
+            f"estimated; {defaults} of {len(contrasts)} exposures took the default: too few " \
+            "events to estimate it"
         typer.echo(f"contrast threshold c ({kind}): median {np.median(contrasts):.3f}, range "
                    f"{min(contrasts):.3f}–{max(contrasts):.3f}")
     said = clipped_message(sum(clipped) / len(clipped) if clipped else 0.0)

@@ -85,10 +85,7 @@ def motion(
                          hint="for several images use a frames folder")
     c = parse_contrast(contrast)
     offset = parse_duration_us(time_offset) if time_offset else 0
-    check_output(output, overwrite, inputs=inputs)
-    if output.exists() and not output.is_dir():
-        raise InputError("the output exists and is not a folder", path=output,
-                         hint="choose a folder path for -o")
+    check_output(output, overwrite, inputs=inputs, folder=True)
     if threads is not None:
         import torch
 
@@ -159,6 +156,10 @@ def motion(
 
 def _line(name: str, s: dict) -> str:
     vx, vy = s["velocity_px_per_exposure"]
+    if not s["motion_found"]:
+        return (f"{name}: no clear global motion in the events (confidence "
+                f"{s['confidence']:.2f}): EDI's frames are used; the search's best candidate "
+                f"(velocity ({vx:.2f}, {vy:.2f}) px per exposure) is in motion.json")
     return (f"{name}: velocity ({vx:.2f}, {vy:.2f}) px per exposure, direction "
             f"{s['direction_deg']:.1f}°, rotation {s['rotation_deg_per_exposure']:.3f}°, "
             f"zoom {100 * s['zoom_log_scale_per_exposure']:.2f} %, pixels travel up to "

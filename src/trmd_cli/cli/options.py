@@ -21,14 +21,16 @@ N = Annotated[int, typer.Option("--n", min=1, max=16,
                                 help="Latent frames 2N+1 per exposure (N=3 → 7 frames).")]
 Exposure = Annotated[
     Optional[tuple[float, float]],
-    typer.Option("--exposure", help="Exposure window T0 T1 in the file's time unit "
-                 "(after --time-unit): overrides frames or windows stored in the file."),
+    typer.Option("--exposure", help="Exposure window T0 T1, in --time-unit if given; else "
+                 "numbers with a fraction are seconds and whole numbers are in the unit of "
+                 "the file's times (seconds for a file of float seconds, else µs). Overrides "
+                 "frames or windows stored in the file."),
 ]
 Sensor = Annotated[Optional[str], typer.Option("--sensor", help="Sensor size WxH, e.g. 346x260, "
                                                "for files that store none.")]
 TimeUnit = Annotated[Optional[str], typer.Option(
     "--time-unit", help="Unit of the file's times: s, ms, us or ns (default: integers are µs, "
-    "floats are seconds).")]
+    "floats are seconds; times are kept in whole µs, ns floored to them).")]
 Columns = Annotated[Optional[str], typer.Option(
     "--columns", help="Text column order, e.g. t,y,x,p (default t,x,y,p).")]
 OneBased = Annotated[bool, typer.Option("--one-based", help="Coordinates count from 1.")]
@@ -55,13 +57,13 @@ Precision = Annotated[str, typer.Option(
 _UNIT_US = {"s": 1e6, "ms": 1e3, "us": 1.0, "µs": 1.0, "ns": 1e-3}
 
 
-def parse_sensor(text: str | None) -> tuple[int, int] | None:
-    """``"346x260"`` → (346, 260)."""
+def parse_sensor(text: str | None, option: str = "--sensor") -> tuple[int, int] | None:
+    """``"346x260"`` → (346, 260); ``option``: the flag the text came from, for messages."""
     if text is None:
         return None
     m = re.fullmatch(r"\s*(\d+)\s*[xX×,]\s*(\d+)\s*", text)
     if not m or int(m[1]) == 0 or int(m[2]) == 0:
-        raise InputError(f"--sensor {text!r} is not WxH", hint="write it like 346x260")
+        raise InputError(f"{option} {text!r} is not WxH", hint="write it like 346x260")
     return int(m[1]), int(m[2])
 
 
@@ -80,11 +82,30 @@ def parse_jobs(text: str) -> int | None:
 
 
 def parse_duration_us(text: str) -> int:
-    """``"-40ms"``, ``"1.5s"``, ``"250us"`` → integer µs. A bare number is µs."""
-    m = re.fullmatch(r"\s*([-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)\s*(s|ms|us|µs|ns)?\s*", text)
+    """``"-40ms"``, ``"1.5s"``, ``"250us"`` → integer µs, exactly (no float in between). A bare
+    number is µs; a duration that is not a whole number of µs is refused, never rounded."""
+    from decimal import Decimal, InvalidOperation
+
+    m = re.fullmatch(r"\s*([-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?)\s*(s|ms|us|µs|ns)?\s*",
+                     text)
+    example = "write it like -40ms, 1.5s or 250us"
     if not m:
-        raise InputError(f"{text!r} is not a duration", hint="write it like -40ms, 1.5s or 250us")
-    return int(round(float(m[1]) * _UNIT_US[m[2] or "us"]))
+        raise InputError(f"{text!r} is not a duration", hint=example)
+    scale = {"s": 1_000_000, "ms": 1_000, "us": 1, "µs": 1, "ns": Decimal("0.001")}[m[2] or "us"]
+    try:
+        us = Decimal(m[1]) * scale
+    except InvalidOperation:
+        raise InputError(f"{text!r} is not a duration", hint=example) from None
+    if abs(us) >= 2**62:
+        raise InputError(f"{text!r} is out of range", hint=example)
+    if us != us.to_integral_value():
+        bare = m[2] is None
+        raise InputError(f"{text.strip()} is {us.normalize():f} µs"
+                         f"{' (a number without a unit is µs)' if bare else ''}, not a whole "
+                         "number of microseconds",
+                         hint="event times are whole µs: give the unit, e.g. -40ms, -0.004s "
+                              "or -4000us")
+    return int(us)
 
 
 def parse_exposure_length_us(text: str | None) -> int | None:

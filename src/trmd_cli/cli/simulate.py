@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -103,7 +104,23 @@ def simulate(
 
     check_input_path(input)
     check_output(output, overwrite, inputs=[input, timestamps])
-    w, h = parse_sensor(size)  # type: ignore[misc]
+    if seed < 0:
+        raise InputError(f"--seed must be 0 or more, got {seed}", hint="e.g. --seed 0")
+    for flag, value, example in (("--read-noise", read_noise, "0.005 ([0, 1] intensity)"),
+                                 ("--motion-px", motion_px, "30"),
+                                 ("--rotation-deg", rotation_deg, "2")):
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            raise InputError(f"{flag} must be a finite number ≥ 0, got {value}",
+                             hint=f"e.g. {flag} {example}")
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise InputError(f"--fps must be a positive finite number, got {fps}",
+                         hint="e.g. --fps 30")
+    w, h = parse_sensor(size, "--size")  # type: ignore[misc]
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        # below 16 px no threshold or motion can be measured on the result; above 8192 the
+        # frames alone would fill the memory before a single event
+        raise InputError(f"--size {w}x{h} lies outside 16x16 … 8192x8192",
+                         hint="e.g. --size 346x260")
     progress = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn(
         "{task.percentage:>3.0f}%"), TimeRemainingColumn(), console=err,
         disable=not progress_enabled(), transient=True)
@@ -331,6 +348,10 @@ def _simulate_frames(input, output, w, h, n, frames, frame_interval_ms, exposure
     interval_us = None if frame_interval_ms is None else _ms_to_us(frame_interval_ms,
                                                                    "--frame-interval-ms")
     exposures = video_exposures(source.times_us, exposure_us, interval_us, frames)
+    if frames is not None and len(exposures) < frames:
+        warn(f"--frames {frames}: only {len(exposures)} exposure(s) of "
+             f"{exposures[0].duration_us / 1000:g} ms fit in the "
+             f"{(source.times_us[-1] - source.times_us[0]) / 1000:g} ms the source spans")
     settings.update(kind=kind, frames=len(exposures), source_frames=len(source),
                     exposure_us=exposures[0].duration_us,
                     frame_interval_us=(exposures[1].start_us - exposures[0].start_us
@@ -353,9 +374,13 @@ def _simulate_frames(input, output, w, h, n, frames, frame_interval_ms, exposure
 def _ms_to_us(ms: float, name: str) -> int:
     from ..errors import InputError
 
+    if not (math.isfinite(ms) and ms * 1000 < 2.0**62):
+        raise InputError(f"{name} must be a finite number of milliseconds, got {ms}",
+                         hint=f"e.g. {name} 20")
     us = int(round(ms * 1000))
     if not ms > 0 or us < 2:
-        raise InputError(f"{name} must be positive, got {ms}")
+        raise InputError(f"{name} must be at least 0.002 ms (2 µs), got {ms}",
+                         hint=f"e.g. {name} 20")
     return us
 
 

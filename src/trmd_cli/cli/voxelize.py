@@ -52,7 +52,7 @@ def voxelize(
     from ..viz import voxel_preview
     from ..voxel import event_bins, scer_from_bins, voxel_instants
     from ..window import resolve_windows
-    from ..write import check_output, write_image, write_npz
+    from ..write import check_image_suffix, check_output, write_image, write_npz
 
     if output.suffix.lower() != ".npz":
         raise typer.BadParameter("the output must end in .npz", param_hint="--output")
@@ -62,6 +62,7 @@ def voxelize(
                                           exposure_length, stamp, topics)) as rec:
         check_output(output, overwrite, inputs=[events])
         if preview is not None:
+            check_image_suffix(preview)  # (never the .npz output's path, then)
             check_output(preview, overwrite, inputs=[events, output])
         for w in rec.warnings:
             warn(w)

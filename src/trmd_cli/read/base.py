@@ -79,6 +79,10 @@ class Recording(ABC):
     #: how to give the frames' exposure times when the file stores frames without them (None:
     #: the generic advice); readers of frames with one time stamp set it
     exposure_hint: str | None = None
+    #: the unit the file's own times were read in where the file decides it (float seconds,
+    #: integer µs, or `time_unit` as given): a window given without a unit is read in it;
+    #: None where the format fixes its clock (camera formats)
+    times_unit: str | None = None
 
     @abstractmethod
     def events(self, start_us: float | None = None, end_us: float | None = None) -> EventStream:
@@ -151,6 +155,7 @@ class MemoryRecording(Recording):
     frame_list: Sequence[Frame] = ()
     windows: Sequence[Exposure] = ()
     warnings: list[str] = field(default_factory=list)
+    times_unit: str | None = None
 
     @property
     def width(self) -> int:  # type: ignore[override]

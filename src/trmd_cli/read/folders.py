@@ -464,8 +464,9 @@ def frames_from_recording(recording: Recording) -> FrameSource:
         if next(iter(recording.frames()), None) is None:
             raise InputError("the file holds events but no frames: deblurring needs the "
                              "blurry frames too", path=recording.path,
-                             hint="give the blurry image before it (BLURRY EVENTS), or a "
-                                  "frames folder (IMAGES_DIR EVENTS)")
+                             hint="deblur and hfr take the blurry image before it (BLURRY "
+                                  "EVENTS) or a frames folder (IMAGES_DIR EVENTS); eval needs "
+                                  "a recording that stores its frames (.h5, .aedat4)")
         # formats whose frames carry one stamp each say how to give the exposure time
         hint = recording.exposure_hint or (
             "give the frames as a folder (with Exposure_start.txt / Exposure_end.txt) or one "

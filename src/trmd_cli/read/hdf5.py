@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import FormatError, InputError
 from ..events import EventStream, Exposure, make_stream
-from ..units import to_microseconds
+from ..units import times_unit, to_microseconds
 from .base import Frame, ReadOptions, Recording
 from .hdf5_strings import read_attr
 
@@ -110,9 +110,7 @@ class HDF5Recording(Recording):
                               path=path, hint="x, y, t and p need one entry per event")
         self.layout = ("trmd" if read_attr(f, "format") in ("trmd", b"trmd")
                        else "event_utils" if keys[0] == "xs" else "dsec")
-        self._unit = options.time_unit
-        if self._unit is None:
-            self._unit = "s" if self._t.dtype.kind == "f" else "us"
+        self._unit = self.times_unit = times_unit(self._t.dtype, options.time_unit)
         self._offset_us = 0
         if "t_offset" in f:
             off = np.asarray(f["t_offset"][()]).ravel()

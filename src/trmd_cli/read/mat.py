@@ -372,4 +372,4 @@ def read_mat(path: Path, options: ReadOptions) -> MemoryRecording:
                         f"{stream.height} from the largest coordinates (pass `sensor=(W, H)`)")
     window = _window(data, path, options.time_unit)
     return MemoryRecording(stream, path, "mat", windows=[window] if window else [],
-                           warnings=warnings)
+                           warnings=warnings, times_unit=options.time_unit or "s")

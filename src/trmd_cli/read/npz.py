@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import FormatError, InputError, TrmdError
 from ..events import Exposure, make_stream
-from ..units import to_microseconds
+from ..units import times_unit, to_microseconds
 from .base import MemoryRecording, ReadOptions
 from .chunked import Chunk, ChunkedRecording
 
@@ -128,7 +128,8 @@ def _build(cols: dict, path: Path, options: ReadOptions, fmt: str, width=None, h
         stream = make_stream(x, y, t, cols["p"], width, height, source=str(path))
     except InputError as e:
         raise InputError(e.detail, path=path, hint=e.hint) from None
-    return MemoryRecording(stream, path, fmt, windows=windows, warnings=warnings)
+    return MemoryRecording(stream, path, fmt, windows=windows, warnings=warnings,
+                           times_unit=times_unit(cols["t"].dtype, options.time_unit))
 
 
 def read_npz(path: Path, options: ReadOptions) -> MemoryRecording | NpzRecording:
@@ -268,6 +269,7 @@ class NpzRecording(ChunkedRecording):
         self._n = members["t"].count
         self._windows = list(windows)
         self._unit = options.time_unit
+        self.times_unit = times_unit(members["t"].dtype, options.time_unit)
         self._stored = all(m.stored for m in members.values())
         self._crc: dict[str, int] | None = None
         try:

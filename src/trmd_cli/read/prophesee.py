@@ -178,7 +178,15 @@ def parse_header(head: bytes) -> PropheseeHeader:
 def _read_header(path: Path) -> PropheseeHeader:
     with open(path, "rb") as fh:
         head = fh.read(1 << 16)
-    return parse_header(head)
+    header = parse_header(head)
+    rest = head[header.data_offset:]
+    if rest.startswith(b"%") and len(head) < 1 << 16 and b"\n" not in rest[:4096] and \
+            all(c >= 0x20 or c == 0x09 for c in rest):
+        # the whole file was read, and it ends in a "%" line that never ends: cut inside its
+        # header (what follows is no event data to keep)
+        raise FormatError("the file ends inside its header (truncated?)", path=path,
+                          hint=_DAMAGED)
+    return header
 
 
 #: no event camera made has a side longer than this (the largest are 1280x720; EVT 2.0 and 3.0

@@ -64,17 +64,25 @@ class TextRecording(ChunkedRecording):
 
     def __init__(self, path: Path, options, *, block_bytes: int | None = None) -> None:
         path = Path(path)
-        with open(path, encoding="utf-8", errors="replace") as fh:
+        # (a byte-order mark, as some Windows editors write, is not part of the first line)
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
             head = [fh.readline() for _ in range(64)]
         skip, sensor, warnings = 0, options.sensor, []
+        columns = options.columns or ("t", "x", "y", "p")
         first_data = None
         for i, line in enumerate(head):
             fields = _split(line.split("#", 1)[0])
             if not fields:
                 skip = i + 1
                 continue
-            if not _is_numeric(fields):  # a header such as "t,x,y,p"
-                skip = i + 1
+            if not _is_numeric(fields):
+                numbers = sum(bool(_NUM.match(f) or _NONFINITE.match(f)) for f in fields)
+                if len(fields) == len(columns) and numbers >= len(columns) - 1:
+                    # an event line with one bad field, not a header such as "t,x,y,p": its
+                    # event must not vanish unsaid
+                    raise FormatError(f"malformed event line {i + 1}: '{line.strip()}'",
+                                      path=path, hint="fix or remove that line")
+                skip = i + 1  # a header such as "t,x,y,p"
                 continue
             if len(fields) == 2 and first_data is None and i == skip:
                 # E2VID: "W H" on the first line
@@ -96,7 +104,6 @@ class TextRecording(ChunkedRecording):
         if first_data is None:
             raise FormatError("no event lines found (truncated, or not an event file?)",
                               path=path, hint="expected lines like '0.000123 45 67 1' (t x y p)")
-        columns = options.columns or ("t", "x", "y", "p")
         if len(first_data) != len(columns):
             more = len(first_data) > len(columns)
             raise FormatError(
@@ -109,6 +116,8 @@ class TextRecording(ChunkedRecording):
                                  for ln in head[skip:] if ln.strip()):
             delim = " "  # single spaces: pandas' fast path (a regex separator halves its speed)
         with open(path, "rb") as fh:
+            if fh.read(3) != b"\xef\xbb\xbf":
+                fh.seek(0)
             for _ in range(skip):
                 fh.readline()
             start = fh.tell()
@@ -132,6 +141,7 @@ class TextRecording(ChunkedRecording):
             self.warnings = list(warnings)
             self.width, self.height = w, h
             self._index()
+        self.times_unit = self._unit
 
     def _index(self) -> None:
         self._changes, self._events, self._indexing = 0, 0, True

@@ -60,11 +60,16 @@ def list_frames(folder: str | Path) -> list[Path]:
     return files
 
 
+#: the longest median spacing of a frame folder's or video's timestamps, seconds
+MAX_FRAME_SPACING_S = 10.0
+
+
 def read_timestamps(path: str | Path, count: int) -> np.ndarray:
     """One time in seconds per line (blank lines and ``#`` comments skipped) → int64 µs.
 
     Raises:
-        InputError: wrong count, not numbers, not strictly increasing, or negative.
+        InputError: wrong count, not numbers, not strictly increasing, negative, or frames
+            more than :data:`MAX_FRAME_SPACING_S` apart (a unit mistake).
     """
     path = Path(path)
     if not path.is_file():
@@ -90,6 +95,12 @@ def read_timestamps(path: str | Path, count: int) -> np.ndarray:
         bad = int(np.flatnonzero(np.diff(us) <= 0)[0]) + 1
         raise InputError(f"timestamp {bad + 1} does not increase", path=path,
                          hint="times must increase strictly, in seconds")
+    if len(t) > 1 and float(np.median(np.diff(t))) > MAX_FRAME_SPACING_S:
+        # a video's frames are milliseconds apart: times in ms or µs read as seconds would
+        # have the simulator sweep hours between frames
+        raise InputError(f"the frames are {float(np.median(np.diff(t))):g} s apart (median): "
+                         "are the times in ms or µs?", path=path,
+                         hint="write one time in seconds per frame, e.g. 0.033 for 33 ms")
     return us
 
 

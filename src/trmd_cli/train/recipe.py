@@ -217,9 +217,13 @@ def load_recipe(path: str | Path | None = None, overrides: list[str] | None = No
                          ) from None
     except UnicodeDecodeError:
         raise InputError("not a text file", path=path, hint="a recipe is a TOML file") from None
-    if overrides:
-        data = _merge_overrides(data, overrides, path)
-    return recipe_from_dict(data, source=path, base_dir=path.parent)
+    recipe = recipe_from_dict(data, source=path, base_dir=path.parent)
+    if not overrides:
+        return recipe
+    # the file was checked alone: what fails now is the overrides' to answer for (merged into
+    # the file's own tables, whose rules — a [loss] table that names weights replaces the
+    # default's — see them as written there)
+    return _overridden(_merge_overrides(data, overrides, None), overrides, path.parent)
 
 
 def recipe_from_dict(data: dict[str, Any], *, source: str | Path | None = None,
@@ -246,9 +250,19 @@ def recipe_from_dict(data: dict[str, Any], *, source: str | Path | None = None,
 
 
 def apply_overrides(recipe: Recipe, overrides: list[str]) -> Recipe:
-    """Recipe with ``"section.key=value"`` overrides applied, validated again."""
-    data = _merge_overrides(recipe.to_dict(), overrides, None)
-    return recipe_from_dict(data, base_dir=recipe.base_dir or None)
+    """Recipe with ``"section.key=value"`` overrides applied, validated again (an error names
+    the overrides, not the recipe's file)."""
+    return _overridden(_merge_overrides(recipe.to_dict(), overrides, None), overrides,
+                       recipe.base_dir or None)
+
+
+def _overridden(data: dict[str, Any], overrides: list[str], base_dir) -> Recipe:
+    """``data`` with ``overrides`` merged in, validated; an error names the overrides."""
+    try:
+        return recipe_from_dict(data, base_dir=base_dir)
+    except InputError as e:
+        raise InputError(f"{e.detail} (after the overrides {' '.join(overrides)})",
+                         hint=e.hint) from None
 
 
 def recipe_diff(a: Recipe, b: Recipe) -> list[str]:
