@@ -118,6 +118,22 @@ def test_result_folder_holds_each_frame_and_the_middle_one(tmp_path, umask_022):
     assert 0.15 < info["clipped_fraction"] < 0.18
 
 
+def test_instants_are_written_exactly_on_an_epoch_clock():
+    """Near 1.5e15 µs a float64 resolves a quarter of a microsecond: the instants are written
+    from whole numbers, to the thousandth (the float would give …498.25 for …498.333)."""
+    from trmd_cli.events import Exposure
+    from trmd_cli.write import instant_texts
+
+    e = Exposure(1_468_941_032_229_165, 1_468_941_032_233_165)
+    assert instant_texts(e, 7) == [
+        "1468941032229165", "1468941032229831.667", "1468941032230498.333",
+        "1468941032231165", "1468941032231831.667", "1468941032232498.333",
+        "1468941032233165"]
+    assert float(e.instants_us(3)[5]) == 1468941032232498.25  # what the float would say
+    assert instant_texts(Exposure(0, 40_001), 1) == ["20000.5"]
+    assert instant_texts(Exposure(10, 20), 3) == ["10", "15", "20"]
+
+
 def test_result_folder_says_the_motion_methods_refitted_threshold(tmp_path):
     import dataclasses
     import json

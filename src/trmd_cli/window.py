@@ -27,7 +27,8 @@ from .errors import InputError
 from .events import Exposure
 from .units import UNIT_SCALE_US
 
-__all__ = ["WindowPlan", "resolve_windows", "exposure_from_user", "check_in_range"]
+__all__ = ["WindowPlan", "resolve_windows", "exposure_from_user", "check_in_range",
+           "check_windows"]
 
 
 class WindowPlan(NamedTuple):
@@ -95,6 +96,21 @@ def check_in_range(window: Exposure, time_range_us: tuple[int, int], what: str =
             f"the {what} [{window.start_us}, {window.end_us}] µs lies outside the events' time "
             f"range [{first}, {last}] µs ({first / 1e6:.6f}–{last / 1e6:.6f} s)", path=path,
             hint="check `exposure`, `time_unit` and `offset_us`")
+
+
+def check_windows(windows: Sequence[Exposure], recording, path=None) -> None:
+    """Bad input if the recording holds no events, or *every* window misses them (a few may:
+    they pass through)."""
+    if not windows:
+        return
+    if recording.is_empty():
+        # else the line would blame the windows, against a time range of [0, 0]
+        raise InputError("the recording holds no events", path=path,
+                         hint="check the file (trmd info)")
+    trange = recording.time_range_us()
+    first, last = trange
+    if all(w.end_us < first or w.start_us > last for w in windows):
+        check_in_range(windows[0], trange, "exposure window", path)
 
 
 def resolve_windows(

@@ -583,8 +583,10 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
         raise
     for job in jobs:
         job.result()
-    for name, t in zip(names, result.instants_us, strict=True):
-        lines.append(f"{name} {fmt_fraction(t) if binned else _fmt_us(t)}")
+    times = [fmt_fraction(t) for t in result.instants_us] if binned else \
+        instant_texts(result.exposure, len(names))
+    for name, t in zip(names, times, strict=True):
+        lines.append(f"{name} {t}")
     _write_in_place(folder / "timestamps.txt", ("\n".join(lines) + "\n").encode())
     if compare:
         picture = strip([result.blurry, result.middle], ("blurry", "sharp"), keep_float=True)
@@ -652,8 +654,20 @@ def _encoders() -> ThreadPoolExecutor:
     return _POOL[pid]
 
 
-def _fmt_us(t: float) -> str:
-    return f"{t:.3f}".rstrip("0").rstrip(".")
+def instant_texts(exposure, count: int) -> list[str]:
+    """The ``count`` instants spread evenly over ``exposure``, ends included (one: its
+    middle), as written in timestamps.txt: µs to the thousandth, from whole numbers — a float64
+    near 1.5e15 µs (an epoch clock) resolves only a quarter of a microsecond."""
+    start, span = int(exposure.start_us), int(exposure.duration_us)
+    steps = max(count - 1, 1)
+    out = []
+    for k in range(count):
+        num = (2 * k + 1) * span if count == 1 else k * span  # over 2 · steps, or over steps
+        den = 2 if count == 1 else steps
+        milli = (num * 1000 * 2 + den) // (2 * den)  # the thousandths, rounded half up
+        whole, frac = divmod(milli, 1000)
+        out.append(f"{start + whole}" + (f".{frac:03d}".rstrip("0") if frac else ""))
+    return out
 
 
 def fmt_fraction(f: float) -> str:

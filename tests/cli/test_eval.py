@@ -410,6 +410,21 @@ def test_cli_outputs_of_the_wrong_kind_are_refused_before_any_work(gt_h5, tmp_pa
     assert folder.is_dir() and not any(folder.iterdir())
 
 
+def test_cli_windows_that_all_miss_the_events_are_refused(tmp_path, rng):
+    """A wrong unit (every window outside the events) is an error, not a table of frames
+    passed through unchanged."""
+    from tests.helpers.data import random_stream
+    from trmd_cli.events import Exposure
+    from trmd_cli.write import write_h5
+
+    s = random_stream(rng)
+    frames = np.full((2, s.height, s.width), 0.5, np.float32)
+    far = [Exposure(10**9, 10**9 + 20_000), Exposure(10**9 + 30_000, 10**9 + 50_000)]
+    path = write_h5(tmp_path / "far.h5", s, blurry=frames, exposures=far)
+    r = run("eval", path, "--methods", "blurry,edi")
+    assert r.exit_code == 2 and "lies outside the events' time range" in r.output, r.output
+
+
 def test_cli_bad_input(gt_h5, nogt_h5, tmp_path):
     out = tmp_path / "x.json"
     r = run("eval", nogt_h5, "--gt", "--methods", "blurry", "--json", out)

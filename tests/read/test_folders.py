@@ -268,3 +268,61 @@ def test_windows_read_ahead_by_a_subset_are_not_read_again(tmp_path, rng, monkey
     # taken once: a second pass reads the files again (and finds them gone)
     with pytest.raises((OSError, InputError)):
         list(src)
+
+
+def test_a_frames_folder_gives_its_size_to_a_text_file_that_states_none(tmp_path, rng):
+    """Events that never fire in the last column or row: the frames' size is the sensor's,
+    not max + 1 of the coordinates (the file holds no size of its own)."""
+    _, starts, (t, x, y, p) = evdi_sequence(tmp_path, rng)
+    keep = (x < W - 3) & (y < H - 2)
+    (tmp_path / "events.txt").write_text("".join(
+        f"{a} {b} {c} {int(d > 0)}\n" for a, b, c, d in zip(t[keep], x[keep], y[keep], p[keep],
+                                                             strict=True)))
+    src = open_frame_folder(tmp_path / "Blur", tmp_path / "events.txt")
+    assert (src.width, src.height) == (W, H)
+    assert not any("max+1" in w for w in src.warnings)
+    ev = next(iter(src)).events
+    assert (ev.width, ev.height) == (W, H)
+
+
+def test_a_frames_folder_alone_finds_its_events_beside_it(tmp_path, rng):
+    from trmd_cli.read.inputs import open_inputs
+
+    _esl_pair(tmp_path, rng)
+    with open_inputs([tmp_path / "images"]) as ins:
+        assert len(ins.source) == 3 and ins.source.exposures()[0].duration_us == 104_000
+    (tmp_path / "mat").rename(tmp_path / "elsewhere")
+    with pytest.raises(InputError, match="got a frames folder but no events"):
+        open_inputs([tmp_path / "images"])
+
+
+def test_trmd_h5_counts_that_disagree_are_refused(tmp_path, rng):
+    import h5py
+
+    from tests.helpers.data import random_stream
+    from trmd_cli.errors import FormatError
+    from trmd_cli.read.dataset import open_dataset
+    from trmd_cli.write import write_h5
+
+    s = random_stream(rng, width=W, height=H)
+    frames = np.full((3, H, W), 0.5, np.float32)
+    wins = [Exposure(1_000 + 30_000 * k, 21_000 + 30_000 * k) for k in range(3)]
+    write_h5(tmp_path / "ok.h5", s, blurry=frames, exposures=wins,
+             sharp=np.repeat(frames[:, None], 7, axis=1))
+    with h5py.File(tmp_path / "ok.h5") as f, h5py.File(tmp_path / "short.h5", "w") as g:
+        for name in ("events", "frames"):
+            f.copy(name, g)
+        del g["frames/sharp"]
+        g["frames/sharp"] = f["frames/sharp"][:2]
+        g.attrs.update(f.attrs)
+    with pytest.raises(FormatError, match="frames/sharp holds 2 .* for 3 frames"):
+        open_dataset(tmp_path / "short.h5", 3)
+    with h5py.File(tmp_path / "ok.h5") as f, h5py.File(tmp_path / "more.h5", "w") as g:
+        for name in ("events", "frames"):
+            f.copy(name, g)
+        del g["frames/blurry"]
+        g["frames/blurry"] = np.concatenate([frames, frames[:1]])
+        g.attrs.update(f.attrs)
+    with pytest.raises(FormatError, match="holds 3 exposure windows for 4 frames"):
+        with open_events(tmp_path / "more.h5") as rec:
+            rec.frame_exposures()

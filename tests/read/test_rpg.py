@@ -161,3 +161,12 @@ def test_a_frames_folder_keeps_its_meaning(tmp_path, rng):
     (d / "Exposure_start.txt").write_text("0\n")
     r = runner.invoke(app, ["deblur", str(d), "-o", str(tmp_path / "o")])
     assert_one_error_line(r, "seq", "frames folder but no events")
+
+
+def test_half_an_rpg_folder_names_the_missing_file(tmp_path):
+    from trmd_cli.errors import InputError
+    from trmd_cli.read import open_events
+
+    (tmp_path / "images.txt").write_text("")
+    with pytest.raises(InputError, match="holds images.txt but no events.txt"):
+        open_events(tmp_path)

@@ -323,6 +323,7 @@ def open_dataset(path: str | Path, n: int = 3, options: ReadOptions | None = Non
         InputError / FormatError: unreadable input, frames without exposure times, ground truth
             with another 2N+1.
     """
+    from ..window import check_windows
     from . import open_events
     from .folders import frames_from_recording, open_frame_folder
     from .gopro import is_gopro_h5
@@ -344,6 +345,9 @@ def open_dataset(path: str | Path, n: int = 3, options: ReadOptions | None = Non
             return _BinnedSource(path, images, bins, n,
                                  truth=None if sharp is None else _folder_truth(sharp))
         frames = open_frame_folder(images, event_files[0] if event_files else None, options)
+        if frames.recording is not None:
+            # (a score of frames passed through unchanged would rank nothing)
+            check_windows(frames.exposures(), frames.recording, frames.recording.path)
         return _WindowSource(path, "folder", frames, n,
                              truth=None if sharp is None else _folder_truth(sharp),
                              has_truth=sharp is not None)
@@ -357,6 +361,7 @@ def open_dataset(path: str | Path, n: int = 3, options: ReadOptions | None = Non
             raise InputError("the recording holds no events", path=path,
                              hint="check the file (trmd info)")
         frames = frames_from_recording(rec)
+        check_windows(frames.exposures(), rec, path)
         has_truth = bool(getattr(rec, "has_ground_truth", False))
         has_c = len(frames) > 0 and hasattr(rec, "contrast") and rec.contrast(0) is not None
         if has_truth and len(frames):

@@ -520,9 +520,7 @@ def open_frame_folder(
         raise InputError(f"{len(exposures)} exposure window(s) for {len(image_paths)} frames",
                          path=images, hint="give one window per frame")
     if events is None:
-        events = next((images_dir.parent / d for d in _EVENT_DIRS
-                       if (images_dir.parent / d).is_dir() and images_dir.parent / d != images_dir),
-                      None)
+        events = sibling_events(images_dir)
         if events is None:
             raise InputError("no events given for these frames", path=images,
                              hint="pass the event file, or the folder of per-frame event files")
@@ -554,6 +552,10 @@ def open_frame_folder(
                    for (img, ev, n), w in zip(pairs, windows, strict=True)]
         return FrameSource(entries, width, height, options=options, warnings=warnings)
 
+    if options.sensor is None and options.frame_size is None:
+        # the frames' size is the sensor's, for event files that state none (a text file
+        # whose last column never fired is not a narrower sensor)
+        options = replace(options, frame_size=(width, height))
     recording = open_events(events, options)
     try:
         check_frame_matches(first, recording.width, recording.height, image_paths[0])
@@ -581,6 +583,15 @@ def open_frame_folder(
     except BaseException:
         recording.close()
         raise
+
+
+def sibling_events(images_dir: Path) -> Path | None:
+    """The per-frame events folder beside a frames folder (eSL-Net's ``mat/``, or ``events/``),
+    or None."""
+    images_dir = Path(images_dir)
+    return next((images_dir.parent / d for d in _EVENT_DIRS
+                 if (images_dir.parent / d).is_dir() and images_dir.parent / d != images_dir),
+                None)
 
 
 def _single_pair(image: Path, events_dir: Path) -> tuple[Path, int]:

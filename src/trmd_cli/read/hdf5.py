@@ -270,7 +270,18 @@ class HDF5Recording(Recording):
                     f"window {int(bad[0])} [{s[bad[0]]}, {e[bad[0]]}] µs is empty or reversed")
             raise FormatError(f"frames/exposure_start/end: {what}", path=self.path,
                               hint="repair the stored windows, or give `exposure=(T0, T1)`")
+        self._one_per_frame("frames/exposure_start", len(s), "exposure windows")
         return [Exposure(int(a), int(b)) for a, b in zip(s, e, strict=True)]
+
+    def _one_per_frame(self, name: str, count: int, what: str) -> None:
+        """Refuse ``count`` entries of ``name`` for another number of stored frames: the
+        layout keeps one per frame, and a frame without its own would vanish or take
+        another's."""
+        frames = self.num_frames
+        if frames and count != frames:
+            raise FormatError(f"{name} holds {count} {what} for {frames} frames in "
+                              "frames/blurry", path=self.path,
+                              hint="repair the file: the trmd layout stores one per frame")
 
     def stored_windows(self) -> list[Exposure]:
         if not self._has("windows/start_us"):
@@ -318,7 +329,15 @@ class HDF5Recording(Recording):
 
     @property
     def has_ground_truth(self) -> bool:
-        return self._has("frames/sharp")
+        if not self._has("frames/sharp"):
+            return False
+        try:
+            shape = self._f["frames/sharp"].shape
+        except _H5_ERRORS as e:
+            raise self._read_error(e) from None
+        self._one_per_frame("frames/sharp", 0 if not shape else shape[0], "exposures' sharp "
+                            "frames")
+        return True
 
     def ground_truth(self, k: int) -> np.ndarray:
         """(2N+1, H, W[, 3]) float32 latent frames of exposure k."""

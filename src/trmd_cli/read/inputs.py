@@ -16,7 +16,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..events import Exposure
-from ..window import check_in_range, exposure_from_user, resolve_windows
+from ..window import check_in_range, check_windows, exposure_from_user, resolve_windows
 from . import open_events
 from .base import ReadOptions
 from .bins import is_bins_file
@@ -28,6 +28,7 @@ from .folders import (
     frames_from_recording,
     open_binned_folder,
     open_frame_folder,
+    sibling_events,
 )
 from .frames import IMAGE_EXTENSIONS, check_frame_matches, read_image
 from .paths import check_input_path
@@ -81,7 +82,8 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
     * ``BLURRY EVENTS``: one image and an event file (or a folder of per-frame event files);
       the window is ``exposure`` (file's unit), else the one stored, else the events' span;
     * ``IMAGES_DIR EVENTS``: a frames folder with an event file (+ Exposure_start/end.txt) or a
-      folder of per-frame event files paired by number;
+      folder of per-frame event files paired by number; ``IMAGES_DIR`` alone when such a
+      folder (``mat/``, ``events/``) stands beside it, as eSL-Net's;
     * ``BLURRY1 BLURRY2 … EVENTS``: several images, one event file storing one window each;
     * ``IMAGES_DIR BINS_FILE``: a frames folder with binned events (:mod:`trmd_cli.read.bins`),
       the i-th image in sorted order with the i-th block of bins; no event clock, so
@@ -107,8 +109,12 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
             raise InputError("got a blurry image but no events", path=paths[0],
                              hint="trmd deblur BLURRY EVENTS -o OUT/")
         if paths[0].is_dir() and not is_recording_folder(paths[0]):
-            raise InputError("got a frames folder but no events", path=paths[0],
-                             hint="trmd deblur IMAGES_DIR EVENTS -o OUT/")
+            beside = sibling_events(paths[0])
+            if beside is None:
+                raise InputError("got a frames folder but no events", path=paths[0],
+                                 hint="trmd deblur IMAGES_DIR EVENTS -o OUT/")
+            return open_inputs([paths[0], beside], options, exposure=exposure,
+                               offset_us=offset_us)
         rec = open_events(paths[0], options)
         if exposure is not None:
             has_frames = next(iter(rec.frames()), None) is not None
@@ -123,7 +129,7 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
             src = FrameSource(_shift(src.entries, offset_us), src.width, src.height,
                               recording=rec, stored_frames=True, options=options,
                               warnings=list(src.warnings), owns_recording=True)
-            _check_windows(src.exposures(), rec, paths[0])
+            check_windows(src.exposures(), rec, paths[0])
         except BaseException:
             rec.close()
             raise
@@ -177,7 +183,7 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
             src = open_frame_folder(paths[0], paths[1], options,
                                     exposures=_shift_windows(wins, offset_us))
         if src.recording is not None:
-            _check_windows(src.exposures(), src.recording, paths[1])
+            check_windows(src.exposures(), src.recording, paths[1])
         return Inputs(src, False, names, list(src.warnings))
 
     if len(paths) >= 2 and all(is_image[:-1]):
@@ -198,7 +204,7 @@ def open_inputs(inputs: Sequence[str | Path], options: ReadOptions | None = None
                                  f"{len(wins)} exposure window(s)", path=events,
                                  hint="give a frames folder with Exposure_start.txt / "
                                  "Exposure_end.txt, or one image with `exposure=(T0, T1)`")
-            _check_windows(wins, rec, events)
+            check_windows(wins, rec, events)
             check_frame_matches(read_image(images[0]), rec.width, rec.height, images[0])
             entries = [FrameEntry(frame_number(p) if frame_number(p) is not None else i,
                                   p.stem, w, p)
@@ -253,16 +259,3 @@ def _shift(entries: Iterable[FrameEntry], offset_us: int) -> list[FrameEntry]:
             for e in entries]
 
 
-def _check_windows(windows: Sequence[Exposure], recording, path) -> None:
-    """Bad input if the recording holds no events, or *every* window misses them (a few may:
-    they pass through)."""
-    if not windows:
-        return
-    if recording.is_empty():
-        # else the line would blame the windows, against a time range of [0, 0]
-        raise InputError("the recording holds no events", path=path,
-                         hint="check the file (trmd info)")
-    trange = recording.time_range_us()
-    first, last = trange
-    if all(w.end_us < first or w.start_us > last for w in windows):
-        check_in_range(windows[0], trange, "exposure window", path)

@@ -130,6 +130,11 @@ def _folder_format(path: Path) -> str:
         raise InputError("looks like a ROS 2 bag folder but holds no metadata.yaml", path=path,
                          hint=f"give the storage file itself ({stores[0].name}), or copy the "
                               "bag again")
+    rpg = [name for name in ("events.txt", "images.txt") if (path / name).is_file()]
+    if len(rpg) == 1:
+        missing = "images.txt" if rpg[0] == "events.txt" else "events.txt"
+        raise InputError(f"holds {rpg[0]} but no {missing}: an RPG recording folder needs both",
+                         path=path, hint=f"add {missing}, or give the event file itself")
     raise InputError("is a folder, expected an event file", path=path,
                      hint="give the event file inside it")
 
