@@ -81,3 +81,17 @@ def test_a_frame_rate_the_video_cannot_play_is_refused(tmp_path):
         for v in (0.2, 0.8):
             vw.append(np.full((8, 8), v, np.float32))
     assert Image.open(tmp_path / "50.gif").info["duration"] == 20
+
+
+def test_a_gif_plays_at_whole_hundredths_and_says_so(tmp_path):
+    from PIL import Image
+
+    from trmd_cli.video import played_fps
+
+    assert played_fps("a.gif", 50) == 50 and played_fps("a.gif", 40) == 50
+    assert played_fps("a.gif", 25) == 25 and played_fps("a.mp4", 30) == 30
+    assert abs(played_fps("a.gif", 30) - 100 / 3) < 1e-9
+    with VideoWriter(tmp_path / "30.gif", fps=30) as vw:
+        for v in (0.2, 0.8):
+            vw.append(np.full((8, 8), v, np.float32))
+    assert Image.open(tmp_path / "30.gif").info["duration"] == 30  # what it plays, not 33

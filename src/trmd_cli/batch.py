@@ -55,6 +55,7 @@ if TYPE_CHECKING:  # not at run time: the CLI imports this module before it know
 
 __all__ = [
     "Item", "RunSettings", "Settings", "Plan", "Stage", "ShareReport", "Ranks", "ShardError",
+    "discard_stage",
     "run_meta", "recordings_in", "make_plan", "prepare_stage", "run_share", "finish",
     "frame_folder_name", "worker_threads", "ranks_from_env", "RECORDING_SUFFIXES", "Unit",
     "open_item", "swap_in", "run_pool", "run_plan", "todo", "agreed", "joined",
@@ -431,6 +432,21 @@ class Stage:
         """The units (of ``units``, default all) not complete yet, in order."""
         units = plan.units() if units is None else units
         return [u for u in units if self.finished(plan, u) is None]
+
+
+def _discarded(output: Path, what: str = "") -> str:
+    return (f"an unfinished run of {output}{what} is discarded; --resume would have continued "
+            "it")
+
+
+def discard_stage(output: str | Path, warn: Callable[[str], None]) -> None:
+    """A run in one process, not resumed: the stage an unfinished run of the same output left
+    goes (said through ``warn``), as a staged run's does — else a later ``--resume`` would
+    finish that older run over this one's output."""
+    stage = Stage(output)
+    if stage.root.exists():
+        warn(_discarded(stage.output))
+        shutil.rmtree(stage.root)
 
 
 def nothing_to_resume(output: Path, folder: bool) -> InputError:
@@ -1019,12 +1035,6 @@ class Outcome:
     main: bool
     summary: object = None
 
-    @property
-    def default_contrasts(self) -> int:
-        """Frames whose window held too few events to estimate c from: they took the
-        default."""
-        return sum(not reliable for r in self.reports for *_, reliable in r.contrast_notes)
-
 
 @contextlib.contextmanager
 def _no_progress(label: str, total: int) -> Iterator[Callable[[], None]]:
@@ -1089,11 +1099,7 @@ def run_staged(make: Callable[..., Plan], inputs: Sequence[Path],
             return
         if resume and not stage.root.is_dir():
             raise nothing_to_resume(output, folder)
-        check_output(output, overwrite, inputs=guard)
-        if output.exists() and output.is_dir() != folder:
-            raise InputError("the output exists and is " + (
-                "a folder" if output.is_dir() else "not a folder"), path=output,
-                hint="choose another path for -o")
+        check_output(output, overwrite, inputs=guard, folder=folder)
 
     def prepare(plan: Plan) -> None:
         if not main:
@@ -1101,8 +1107,7 @@ def run_staged(make: Callable[..., Plan], inputs: Sequence[Path],
         if stage.root.exists() and not resume:
             left = len(plan.units()) - len(stage.pending(plan)) if stage.plan_file.is_file() \
                 else 0
-            warn(f"an unfinished run of {output} ({left} {plan.noun}) is discarded; --resume "
-                 "would have continued it")
+            warn(_discarded(output, f" ({left} {plan.noun})"))
         _, before = prepare_stage(plan, output, resume)
         if before:
             say(f"resuming: {before} of {len(plan.units())} {plan.counted} are done already")

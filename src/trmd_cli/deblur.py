@@ -450,11 +450,6 @@ class ContrastNotes:
         kind = self._fallback if not reliable else self._edge
         kind.append((name, note))
 
-    @property
-    def defaults(self) -> int:
-        """Frames whose window held too few events to estimate c from (the default used)."""
-        return len(self._fallback)
-
     def lines(self) -> list[str]:
         out = []
         for notes in (self._fallback, self._edge):

@@ -29,7 +29,7 @@ CAPPED_NOTE = ("some gaps between exposures are long: they were filled with fewe
                "real time would need (raise `max_gap_frames`)")
 
 __all__ = ["CAPPED_NOTE", "HfrFrame", "Edge", "hfr_stream", "exposure_frames", "gap_frames",
-           "timestamp_row", "check_time_order"]
+           "timestamp_row", "check_time_order", "ExposureContrast", "contrast_meta"]
 
 
 def check_time_order(exposures: Sequence[Exposure], path: str | Path | None = None) -> None:
@@ -52,6 +52,35 @@ def check_time_order(exposures: Sequence[Exposure], path: str | Path | None = No
                              hint="check the exposure windows stored with the events; hfr "
                                   "plays exposures one after the other (deblur takes "
                                   "overlapping ones)")
+
+
+@dataclass(frozen=True)
+class ExposureContrast:
+    """One exposure's c in a stream, as meta.json and the run's line tell it.
+
+    Attributes:
+        frame: its frame's name. contrast: its c, or None (passed through, no events).
+        default: c is the default, its window holding too few events to estimate it from.
+    """
+
+    frame: str
+    contrast: float | None
+    default: bool = False
+
+    @classmethod
+    def of(cls, result) -> ExposureContrast:
+        """A :class:`~trmd_cli.deblur.FrameResult`'s."""
+        c = result.estimate.contrast
+        return cls(result.name, None if c is None else float(c),
+                   result.estimate.contrast_default)
+
+
+def contrast_meta(records: Sequence[ExposureContrast]) -> dict:
+    """meta.json's entries for the exposures' c: one per exposure in stream order (null where
+    it was passed through), their frames, and those that took the default."""
+    return {"contrast": [r.contrast for r in records],
+            "contrast_frames": [r.frame for r in records],
+            "contrast_defaults": [r.frame for r in records if r.default]}
 
 
 @dataclass(frozen=True, eq=False)

@@ -44,6 +44,7 @@ import numpy as np
 from .batch import Item, Plan, RunSettings, ShardError, ShareReport, Stage, Tally, Unit
 
 if TYPE_CHECKING:
+    from .hfr import ExposureContrast
     from .methods import MethodConfig
 
 __all__ = ["HfrSettings", "HfrPlan", "HfrSummary", "make_hfr_plan", "run_hfr_share",
@@ -138,14 +139,14 @@ class HfrSummary:
     """What a finished run's records say, over all its recordings.
 
     Attributes:
-        exposure, gap: frames from exposures and filling gaps. contrasts: each exposure's c (of
-        those that have one), in stream order. clipped: each exposure's fraction of values
-        clipped. capped: some gap got fewer frames than real time needs.
+        exposure, gap: frames from exposures and filling gaps. contrasts: each exposure's c
+        (:class:`~trmd_cli.hfr.ExposureContrast`), in stream order. clipped: each exposure's
+        fraction of values clipped. capped: some gap got fewer frames than real time needs.
     """
 
     exposure: int
     gap: int
-    contrasts: tuple[float, ...]
+    contrasts: tuple[ExposureContrast, ...]
     clipped: tuple[float, ...]
     capped: bool
 
@@ -242,7 +243,7 @@ def run_hfr_share(plan: HfrPlan, stage: Stage, share: Sequence[Unit],
     """
     from .batch import open_item
     from .deblur import deblur_frames
-    from .hfr import exposure_frames, gap_frames
+    from .hfr import ExposureContrast, exposure_frames, gap_frames
     from .write import clipped_fraction, write_json
 
     s = plan.settings
@@ -267,10 +268,10 @@ def run_hfr_share(plan: HfrPlan, stage: Stage, share: Sequence[Unit],
                     edge = _write_edge(res) if plan.gaps(item) else None
                     unit = ("x", r, k)
                     _write_unit(stage, plan, unit, frames, edge)
-                    c = res.estimate.contrast
+                    said = ExposureContrast.of(res)
                     write_json(stage.record(unit), {
-                        "folder": f"x{k}", "rows": _rows(frames),
-                        "contrast": None if c is None else float(c),
+                        "folder": f"x{k}", "rows": _rows(frames), "frame": said.frame,
+                        "contrast": said.contrast, "contrast_default": said.default,
                         "clipped": clipped_fraction(res.frames),
                         "edge": None if edge is None else edge[0]})
                     tally.made()
@@ -342,19 +343,20 @@ def finish_hfr(plan: HfrPlan, stage: Stage) -> HfrSummary:
         ShardError: a unit is not complete (a process did not finish its share).
     """
     from .batch import swap_in, sweep_temps
+    from .hfr import ExposureContrast, contrast_meta
     from .video import VideoWriter
     from .write import write_json, write_text
 
     s = plan.settings
     exposure = gap = 0
-    contrasts: list[float] = []
+    contrasts: list[ExposureContrast] = []
     clipped: list[float] = []
     capped = False
     for r, item in enumerate(plan.items):
         files: list[Path] = []
         rows: list[str] = []
         count = {"exposure": 0, "gap": 0}
-        mine: list[float] = []  # this recording's c, for its meta.json
+        mine: list[ExposureContrast] = []  # this recording's, for its meta.json
         for unit in plan.stream(r):
             rec = stage.finished(plan, unit)
             if rec is None:
@@ -366,8 +368,8 @@ def finish_hfr(plan: HfrPlan, stage: Stage) -> HfrSummary:
             rows += rec["rows"]
             count["exposure" if unit[0] == "x" else "gap"] += len(rec["rows"])
             if unit[0] == "x":
-                if rec["contrast"] is not None:
-                    mine.append(rec["contrast"])
+                mine.append(ExposureContrast(rec["frame"], rec["contrast"],
+                                             rec["contrast_default"]))
                 clipped.append(rec["clipped"])
             else:
                 capped = capped or rec["capped"]
@@ -385,7 +387,8 @@ def finish_hfr(plan: HfrPlan, stage: Stage) -> HfrSummary:
                 _link(src, target / name)
                 lines.append(f"{name} {row}")
             write_text(target / "timestamps.txt", "\n".join(lines) + "\n")
-            write_json(target / "meta.json", {**item.meta, "contrast": mine, "frames": count})
+            write_json(target / "meta.json", {**item.meta, **contrast_meta(mine),
+                                              "frames": count})
         else:
             target = stage.out / item.folder if item.folder else stage.output
             with VideoWriter(target, s.fps) as vw:

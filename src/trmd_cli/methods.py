@@ -208,6 +208,11 @@ class Estimate:
     notes: tuple[str, ...] = ()
     fallback_contrast: float | None = None
 
+    @property
+    def contrast_default(self) -> bool:
+        """c is the default: it was to be estimated, and the window held too few events."""
+        return self.contrast_estimated and not self.contrast_reliable
+
 
 class Method(Protocol):
     """A deblurring method: blurry frame + the events of its exposure → latent frames."""
@@ -651,8 +656,10 @@ class MotionMethod(_RemovesPattern):
                         res.fallback_contrast)
 
     def from_bins(self, blurry, bins, fractions=None) -> Estimate:
-        raise InputError("`method='motion'` needs event times to estimate the motion; binned "
-                         "events have none", hint="use `method='edi'` or `method='trmd'`")
+        # (no flag named: deblur's is --method, eval's --methods)
+        raise InputError("the motion method (and fused, which runs it) needs event times to "
+                         "estimate the motion; binned events have none",
+                         hint="use the edi or the trmd method")
 
 
 class FusedMethod(_RemovesPattern):

@@ -46,6 +46,18 @@ def check_fps(path: str | Path, fps: float) -> float:
     return float(fps)
 
 
+def played_fps(path: str | Path, fps: float) -> float:
+    """The rate a video at ``path`` written at ``fps`` plays at: a GIF's frames last whole
+    hundredths of a second (30 fps → 3 hundredths: 33.3 fps); an MP4's rate is ``fps``."""
+    if Path(path).suffix.lower() != ".gif":
+        return float(fps)
+    return 100.0 / _gif_hundredths(fps)
+
+
+def _gif_hundredths(fps: float) -> int:
+    return max(2, int(round(100.0 / float(fps))))
+
+
 def check_video_path(path: str | Path) -> Path:
     """Raise :class:`InputError` unless ``path`` ends in .mp4 or .gif."""
     path = Path(path)
@@ -114,9 +126,10 @@ class VideoWriter:
             if self.count == 0:
                 raise InputError("no frames to write", path=self.path)
             if self.kind == "gif":
-                # GIF timing is in whole centiseconds; Pillow takes milliseconds per frame
+                # GIF timing is in whole hundredths of a second (see :func:`played_fps`);
+                # Pillow takes milliseconds per frame, and rounds them down to hundredths
                 buffer = io.BytesIO()
-                _write_gif(buffer, np.stack(self._gif), int(round(1000 / self.fps)))
+                _write_gif(buffer, np.stack(self._gif), 10 * _gif_hundredths(self.fps))
                 self._gif = []
                 with open_output(self._tmp) as fh:
                     fh.write(buffer.getbuffer())

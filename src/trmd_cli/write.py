@@ -531,7 +531,7 @@ def clipped_message(fraction: float) -> str | None:
 def _contrast_origin(estimate) -> dict:
     """meta.json's word on where c came from: estimated, or the default a window with too few
     events to estimate from fell back to (``contrast_default``), else given."""
-    default = estimate.contrast_estimated and not estimate.contrast_reliable
+    default = estimate.contrast_default
     return {"contrast_estimated": estimate.contrast_estimated and not default,
             **({"contrast_default": True} if default else {})}
 

@@ -226,3 +226,41 @@ def test_binned_hfr_video(binned_seq, tmp_path):
                             "--contrast", "0.2", "--n", "2", "--per-exposure", "5"])
     assert r.exit_code == 0, r.output
     assert iio.imread(out).shape[0] == 15
+
+
+def test_meta_gives_every_exposures_c_by_name_and_says_which_took_the_default(seq, tmp_path):
+    """One exposure without events (passed through: no c), one with too few to estimate c
+    from (the default), one with all of them: meta.json keeps one entry per exposure, names
+    them, and lists the default; the run's line does not call a default estimated."""
+    from trmd_cli.events import Exposure
+
+    e = seq.exposures
+    ev = seq.events
+    second = np.flatnonzero((ev.t >= e[1].start_us) & (ev.t <= e[1].end_us))
+    few = second[::len(second) // 1000 + 1]  # about a thousand events over the exposure
+    keep = np.concatenate([few, np.flatnonzero(ev.t > e[1].end_us)])
+    assert 0 < len(few) < 2_000
+    path = write_h5(tmp_path / "r.h5", ev.take(keep), blurry=seq.blurry,
+                    exposures=[Exposure(e[0].start_us - 30_000, e[0].start_us - 25_000),
+                               e[1], e[2]])
+    out = tmp_path / "o"
+    r = runner.invoke(app, ["hfr", str(path), "-o", str(out), "--method", "edi",
+                            "--contrast", "frame", "--no-fill-gaps"])
+    assert r.exit_code == 0, r.output
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["contrast_frames"] == [f"r.h5#frame{k}" for k in range(3)]
+    c = meta["contrast"]
+    assert c[0] is None and c[1] == 0.25 and 0.05 < c[2] < 1 and c[2] != 0.25
+    assert meta["contrast_defaults"] == ["r.h5#frame1"]
+    assert "estimated; 1 of 2 exposures took the default" in r.output
+
+
+def test_a_run_in_one_process_discards_an_unfinished_runs_stage(gapped, tmp_path):
+    out = tmp_path / "frames"
+    stage = tmp_path / ".frames.trmd-partial"
+    (stage / "done").mkdir(parents=True)
+    r = runner.invoke(app, ["hfr", str(gapped), "-o", str(out), "--contrast", "0.2",
+                            "--jobs", "1"])
+    assert r.exit_code == 0, r.output
+    assert "an unfinished run of" in r.output and "is discarded" in r.output
+    assert not stage.exists() and out.is_dir()

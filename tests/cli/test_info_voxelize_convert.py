@@ -198,3 +198,13 @@ def test_convert_says_what_the_target_does_not_keep(tmp_path, rng):
     plain = write_h5(tmp_path / "plain.h5", s)
     r = runner.invoke(app, ["convert", str(plain), "-o", str(tmp_path / "plain2.h5")])
     assert r.exit_code == 0 and "warning" not in r.output
+
+
+def test_info_describes_a_bins_file(tmp_path):
+    counts = np.zeros((6, 8, 10), np.int16)
+    counts[0, 1, 2], counts[3, 4, 5] = 3, -2
+    np.savez(tmp_path / "bins.npz", event_bins=counts)
+    r = runner.invoke(app, ["info", str(tmp_path / "bins.npz"), "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    assert d["shape"] == [6, 8, 10] and d["sensor"] == "10x8" and d["abs_count"] == 5

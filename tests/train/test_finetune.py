@@ -309,6 +309,15 @@ def test_finetune_with_zero_steps_gives_back_the_starting_network(sim, tmp_path)
         assert torch.equal(p, q), name
 
 
+def test_overwrite_leaves_no_picture_of_other_weights_beside_new_ones(sim, tmp_path):
+    out = tmp_path / "w.safetensors"
+    (tmp_path / "w.png").write_bytes(b"an earlier run's before/after picture")
+    r = runner.invoke(app, ["finetune", str(sim), "-o", str(out), "--steps", "0",
+                            "--holdout", "0", "--threads", "1", "--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert out.is_file() and not (tmp_path / "w.png").exists()
+
+
 def test_without_a_motion_to_learn_from_it_stops_before_training(sim):
     from trmd_cli.train.finetune import finetune
 

@@ -199,6 +199,7 @@ def deblur(
     from ..batch import (
         choose_jobs,
         count_work,
+        discard_stage,
         frame_folder_name,
         ranks_from_env,
         recordings_in,
@@ -268,6 +269,7 @@ def deblur(
     with open_inputs(inputs, opts, exposure=exposure, offset_us=offset) as ins:
         for w in ins.warnings:
             warn(w)
+        discard_stage(output, warn)
         est, settled = settle(make_method(config), ins.source, config)
         meta = run_meta(ins, est, config, offset, bit_depth, settled)
         said = [binned_note(ins.source, est)] if ins.binned else []

@@ -179,6 +179,9 @@ def finetune(
     if result.example is not None:
         name, blurry, before, after = result.example
         write_image(picture, strip([blurry, before, after], ["blurry", "before", "after"]))
+    elif picture.is_file():
+        # (overwrite): an earlier run's picture would stand beside weights it does not show
+        picture.unlink()
     save_weights(output, result.model, meta=result.meta)
 
     typer.echo(f"fine-tuned {config.steps} steps on {result.windows} window(s) "

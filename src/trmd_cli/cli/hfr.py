@@ -25,7 +25,7 @@ from collections.abc import Sequence
 from contextlib import closing
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -60,6 +60,9 @@ from .options import (
     parse_jobs,
     read_options,
 )
+
+if TYPE_CHECKING:
+    from ..hfr import ExposureContrast
 
 Jobs = Annotated[str, typer.Option(
     "--jobs", "-j", help="Worker processes on this machine: the exposures are shared out among "
@@ -130,10 +133,23 @@ def hfr(
     .OUT.trmd-partial beside -o meanwhile; with the same --threads the output equals a run in
     one process file for file (on other thread counts the trmd and fused methods' network may
     round a few pixels to the next grey level)."""
-    from ..batch import choose_jobs, count_work, ranks_from_env, recordings_in, staged
+    from ..batch import (
+        choose_jobs,
+        count_work,
+        discard_stage,
+        ranks_from_env,
+        recordings_in,
+        staged,
+    )
     from ..deblur import ContrastNotes, binned_note, deblur_frames, settle
     from ..errors import InputError
-    from ..hfr import check_time_order, hfr_stream, timestamp_row
+    from ..hfr import (
+        ExposureContrast,
+        check_time_order,
+        contrast_meta,
+        hfr_stream,
+        timestamp_row,
+    )
     from ..hfr_batch import OUTPUT_KINDS, hfr_meta, timestamps_header
     from ..methods import make_method
     from ..overlap import ahead
@@ -203,13 +219,14 @@ def hfr(
                 warn(CAPPED_NOTE)
             _report(output, done.exposure, done.gap, done.contrasts, done.clipped,
                     config.contrast, fps, meta["method"], meta["n"], len(run.plan.items),
-                    [it.settled for it in run.plan.items], run.default_contrasts)
+                    [it.settled for it in run.plan.items])
         return
-    check_output(output, overwrite, inputs=[*inputs, weights])
+    check_output(output, overwrite, inputs=[*inputs, weights], folder=not as_video)
 
     with open_inputs(inputs, opts, exposure=exposure, offset_us=offset) as ins:
         for w in ins.warnings:
             warn(w)
+        discard_stage(output, warn)
         if ins.binned:  # in sorted order by definition; no gaps to fill, so no c for them
             config = replace(config, settle_contrast=False)
         else:
@@ -217,7 +234,7 @@ def hfr(
         est, settled = settle(make_method(config), ins.source, config)
         notes: list[str] = [binned_note(ins.source, est, stream=True)] if ins.binned else []
         contrast_notes = ContrastNotes()
-        contrasts: list[float] = []
+        contrasts: list[ExposureContrast] = []
         clipped: list[float] = []
         count = {"exposure": 0, "gap": 0}
         lines = [timestamps_header(ins.binned)]
@@ -229,8 +246,7 @@ def hfr(
                     for w in res.warnings:
                         warn(w)
                     contrast_notes.add(res)
-                    if res.estimate.contrast is not None:
-                        contrasts.append(res.estimate.contrast)
+                    contrasts.append(ExposureContrast.of(res))
                     clipped.append(clipped_fraction(res.frames))
                     tick()
                     yield res
@@ -255,39 +271,43 @@ def hfr(
                     meta = hfr_meta(ins, est, per_exposure=per_exposure, fps=fps,
                                     fill_gaps=fill_gaps, offset_us=offset, config=config,
                                     settled=settled)
-                    write_json(tmp / "meta.json", {**meta, "contrast": contrasts,
+                    write_json(tmp / "meta.json", {**meta, **contrast_meta(contrasts),
                                                    "frames": count})
 
     for note in [*contrast_notes.lines(), *notes]:
         warn(note)
     _report(output, count["exposure"], count["gap"], contrasts, clipped, config.contrast,
-            fps, est.name, est.n, 1, [settled], contrast_notes.defaults)
+            fps, est.name, est.n, 1, [settled])
 
 
-def _report(output: Path, exposure: int, gap: int, contrasts: Sequence[float],
+def _report(output: Path, exposure: int, gap: int, contrasts: Sequence[ExposureContrast],
             clipped: Sequence[float], given: float | None, fps: float, method: str,
-            n: int, recordings: int = 1, settled: Sequence = (), defaults: int = 0) -> None:
-    """``settled``: what was settled for each recording (a ``Settled``) or None;
-    ``defaults``: exposures that took the default c (too few events to estimate it)."""
+            n: int, recordings: int = 1, settled: Sequence = ()) -> None:
+    """``settled``: what was settled for each recording (a ``Settled``) or None."""
     from ..write import clipped_message
 
     for done in settled:
         for line in [] if done is None else done.lines():
             typer.echo(as_flags(line))
-    if contrasts and not (settled and all(d is not None and d.contrast is not None
-                                          for d in settled)):
+    values = [r.contrast for r in contrasts if r.contrast is not None]
+    defaults = sum(r.default for r in contrasts)
+    if values and not (settled and all(d is not None and d.contrast is not None
+                                       for d in settled)):
         import numpy as np
 
         kind = "given" if given is not None else "estimated" if defaults == 0 else \
-            f"estimated; {defaults} of {len(contrasts)} exposures took the default: too few " \
+            "the default: too few events to estimate it" if defaults == len(values) else \
+            f"estimated; {defaults} of {len(values)} exposures took the default: too few " \
             "events to estimate it"
-        typer.echo(f"contrast threshold c ({kind}): median {np.median(contrasts):.3f}, range "
-                   f"{min(contrasts):.3f}–{max(contrasts):.3f}")
+        typer.echo(f"contrast threshold c ({kind}): median {np.median(values):.3f}, range "
+                   f"{min(values):.3f}–{max(values):.3f}")
     said = clipped_message(sum(clipped) / len(clipped) if clipped else 0.0)
     if said:
         warn(said)
+    from ..video import played_fps
+
     typer.echo(f"wrote {output}: {exposure + gap} frames ({exposure} from exposures, "
-               f"{gap} filling gaps) at {fps:g} fps, {method} N={n}")
+               f"{gap} filling gaps) at {played_fps(output, fps):.4g} fps, {method} N={n}")
     if recordings > 1:
         typer.echo(f"  from {recordings} recordings, one output each")
 

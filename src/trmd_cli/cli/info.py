@@ -47,8 +47,14 @@ def info(
         _weights_info(file, as_json)
         return
     from ..read import open_events
+    from ..read.bins import describe_bins, is_bins_file
     from ..summary import summarize
 
+    if is_bins_file(file):
+        s = describe_bins(file)
+        typer.echo(json.dumps(s, indent=2) if as_json else
+                   "\n".join(f"{k.replace('_', ' ')}: {v}" for k, v in s.items()))
+        return
     with open_events(file, read_options(columns, one_based, time_unit, sensor,
                                         exposure_length, stamp, topics)) as rec:
         for w in rec.warnings:

@@ -84,54 +84,48 @@ def parse_jobs(text: str) -> int | None:
 def parse_duration_us(text: str) -> int:
     """``"-40ms"``, ``"1.5s"``, ``"250us"`` → integer µs, exactly (no float in between). A bare
     number is µs; a duration that is not a whole number of µs is refused, never rounded."""
-    from decimal import Decimal, InvalidOperation
-
-    m = re.fullmatch(r"\s*([-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?)\s*(s|ms|us|µs|ns)?\s*",
-                     text)
-    example = "write it like -40ms, 1.5s or 250us"
-    if not m:
-        raise InputError(f"{text!r} is not a duration", hint=example)
-    scale = {"s": 1_000_000, "ms": 1_000, "us": 1, "µs": 1, "ns": Decimal("0.001")}[m[2] or "us"]
-    try:
-        us = Decimal(m[1]) * scale
-    except InvalidOperation:
-        raise InputError(f"{text!r} is not a duration", hint=example) from None
-    if abs(us) >= 2**62:
-        raise InputError(f"{text!r} is out of range", hint=example)
-    if us != us.to_integral_value():
-        bare = m[2] is None
-        raise InputError(f"{text.strip()} is {us.normalize():f} µs"
-                         f"{' (a number without a unit is µs)' if bare else ''}, not a whole "
-                         "number of microseconds",
-                         hint="event times are whole µs: give the unit, e.g. -40ms, -0.004s "
-                              "or -4000us")
-    return int(us)
+    return _exact_us(text, "", signed=True, example="write it like -40ms, 1.5s or 250us",
+                     whole_hint="event times are whole µs: give the unit, e.g. -40ms, "
+                                "-0.004s or -4000us")
 
 
 def parse_exposure_length_us(text: str | None) -> int | None:
     """``"20ms"``, ``"500us"``, ``"0.02s"`` → whole µs (exact: no float in between); the unit is
     required, a fraction of a microsecond refused."""
-    from decimal import Decimal, InvalidOperation
-
     if text is None:
         return None
-    m = re.fullmatch(r"\s*(\d+(?:\.\d*)?|\.\d+)\s*(s|ms|us|µs|ns)?\s*", text)
     example = "e.g. --exposure-length 20ms (or 500us, 0.02s)"
+    us = _exact_us(text, "--exposure-length ", signed=False, example=example,
+                   whole_hint="event times are whole µs: give e.g. 20ms or 20001us")
+    if us <= 0:
+        raise InputError(f"--exposure-length {text} is not positive", hint=example)
+    return us
+
+
+def _exact_us(text: str, flag: str, *, signed: bool, example: str, whole_hint: str) -> int:
+    """A duration with its unit (s, ms, us, ns) → whole µs through decimal arithmetic, never
+    rounded. ``signed``: a sign and an exponent are allowed, and a bare number is µs; else the
+    unit is required. ``flag`` (with its space) begins the messages."""
+    from decimal import Decimal, InvalidOperation
+
+    number = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?" if signed else \
+        r"\d+(?:\.\d*)?|\.\d+"
+    m = re.fullmatch(rf"\s*({number})\s*(s|ms|us|µs|ns)?\s*", text)
     if not m:
-        raise InputError(f"--exposure-length {text!r} is not a duration", hint=example)
-    if m[2] is None:
-        raise InputError(f"--exposure-length {text!r} needs its unit", hint=example)
-    scale = {"s": 1_000_000, "ms": 1_000, "us": 1, "µs": 1, "ns": Decimal("0.001")}[m[2]]
+        raise InputError(f"{flag}{text!r} is not a duration", hint=example)
+    if m[2] is None and not signed:
+        raise InputError(f"{flag}{text!r} needs its unit", hint=example)
+    scale = {"s": 1_000_000, "ms": 1_000, "us": 1, "µs": 1, "ns": Decimal("0.001")}[m[2] or "us"]
     try:
         us = Decimal(m[1]) * scale
     except InvalidOperation:
-        raise InputError(f"--exposure-length {text!r} is not a duration", hint=example) from None
+        raise InputError(f"{flag}{text!r} is not a duration", hint=example) from None
+    if abs(us) >= 2**62:
+        raise InputError(f"{flag}{text!r} is out of range", hint=example)
     if us != us.to_integral_value():
-        raise InputError(f"--exposure-length {text} is {us.normalize():f} µs, not a whole "
-                         "number of microseconds",
-                         hint="event times are whole µs: give e.g. 20ms or 20001us")
-    if us <= 0:
-        raise InputError(f"--exposure-length {text} is not positive", hint=example)
+        bare = " (a number without a unit is µs)" if m[2] is None else ""
+        raise InputError(f"{flag}{text.strip()} is {us.normalize():f} µs{bare}, not a whole "
+                         "number of microseconds", hint=whole_hint)
     return int(us)
 
 

@@ -24,12 +24,14 @@ from __future__ import annotations
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from tokenize import TokenError
 
 import numpy as np
 
 from ..errors import FormatError, InputError, TrmdError
 
-__all__ = ["BINS_KEY", "BINNED_HINT", "BinnedEvents", "is_bins_file", "read_bins"]
+__all__ = ["BINS_KEY", "BINNED_HINT", "BinnedEvents", "is_bins_file", "read_bins",
+           "describe_bins"]
 
 #: the key (``.mat`` variable, ``.npz`` entry) holding the bins
 BINS_KEY = "event_bins"
@@ -110,9 +112,33 @@ def is_bins_file(path: str | Path) -> bool:
         if fmt == "npy":
             shape, dtype = _npy_header(path)
             return dtype.names is None and len(shape) in (3, 4)
-    except (TrmdError, OSError, zipfile.BadZipFile, ValueError):
+    except (TrmdError, OSError, zipfile.BadZipFile, ValueError, SyntaxError, TokenError):
+        # (a damaged .npy header: not a bins file; the event readers name the damage)
         return False
     return False
+
+
+def describe_bins(path: str | Path) -> dict:
+    """What ``trmd info`` says of a bins file: its array's shape and type, the sensor, and the
+    sum of |counts| (a lower bound on the events). How its rows split into frames follows
+    from the number of frames given with it (:func:`read_bins`)."""
+    path = Path(path)
+    counts = _load(path)
+    shape = tuple(int(d) for d in counts.shape)
+    if len(shape) not in (3, 4):
+        raise FormatError(f"binned events of shape {shape}, expected (F·B, H, W) or "
+                          "(F, B, H, W)", path=path, hint=BINNED_HINT)
+    whole = np.abs(np.asarray(counts, np.float64)).sum()
+    return {"format": f"binned events ({_format(path)}, '{BINS_KEY}')" if _format(path) != "npy"
+            else "binned events (npy)",
+            "shape": list(shape), "dtype": str(counts.dtype),
+            "sensor": f"{shape[-1]}x{shape[-2]}",
+            "abs_count": int(whole) if float(whole).is_integer() else float(whole),
+            "abs_count_meaning": "sum of |per-pixel polarity sums| over every bin: a lower "
+                                 "bound on the events",
+            "frames": "F·B rows: the bins per frame follow from the number of frames given "
+                      "with the file (trmd deblur IMAGES_DIR BINS_FILE)"
+                      if len(shape) == 3 else shape[0]}
 
 
 def _npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
