@@ -94,6 +94,9 @@ class HfrFrame:
         source: the frame (or the two frames around a gap) it came from.
         fraction: binned events: the instant as a fraction of its exposure (0 = start,
             1 = end); None otherwise.
+        stamp: ``t_us`` as timestamps.txt writes it, computed from whole numbers (a float64
+            near an epoch clock's 1.5e15 µs resolves only a quarter of a microsecond); None:
+            from ``t_us``.
     """
 
     t_us: float | None
@@ -101,6 +104,7 @@ class HfrFrame:
     kind: str  # "exposure" or "gap"
     source: str
     fraction: float | None = None
+    stamp: str | None = None
 
 
 def timestamp_row(frame: HfrFrame) -> str:
@@ -108,7 +112,8 @@ def timestamp_row(frame: HfrFrame) -> str:
     events: its fraction of the exposure), kind and source."""
     from .write import fmt_fraction
 
-    when = fmt_fraction(frame.fraction) if frame.t_us is None else f"{frame.t_us:.3f}"
+    when = fmt_fraction(frame.fraction) if frame.t_us is None else \
+        frame.stamp if frame.stamp is not None else f"{frame.t_us:.3f}"
     return f"{when} {frame.kind} {frame.source}"
 
 
@@ -146,8 +151,11 @@ def exposure_frames(res: FrameResult) -> Iterator[HfrFrame]:
         for f, img in zip(res.instants_us, res.frames, strict=True):
             yield HfrFrame(None, img, "exposure", res.name, float(f))
         return
-    for t, img in zip(res.instants_us, res.frames, strict=True):
-        yield HfrFrame(float(t), img, "exposure", res.name)
+    from .write import instant_texts
+
+    for t, img, stamp in zip(res.instants_us, res.frames,
+                             instant_texts(res.exposure, len(res.instants_us)), strict=True):
+        yield HfrFrame(float(t), img, "exposure", res.name, stamp=stamp)
 
 
 def gap_frames(a: Edge, b: Edge, recording=None, *, max_gap_frames: int | None = None,
@@ -232,5 +240,11 @@ def _gap_frames(a: Edge, b: Edge, recording, max_frames: int | None,
     w = ((times - t0) / (t1 - t0)).astype(np.float32)
     w = w.reshape(-1, *([1] * (fwd.ndim - 1)))
     mix = (1 - w) * fwd + w * bwd
-    for t, img in zip(times, mix, strict=True):
-        yield HfrFrame(float(t), img, "gap", f"{a.name}-{b.name}")
+    from .write import exact_us_text
+
+    # the edges' instants are whole µs where they are an exposure's ends (one frame per
+    # exposure: its middle, which may fall between two)
+    exact = float(t0).is_integer() and float(t1).is_integer()
+    for i, (t, img) in enumerate(zip(times, mix, strict=True), 1):
+        stamp = exact_us_text(int(t0), i * int(t1 - t0), count + 1) if exact else None
+        yield HfrFrame(float(t), img, "gap", f"{a.name}-{b.name}", stamp=stamp)

@@ -659,15 +659,17 @@ def instant_texts(exposure, count: int) -> list[str]:
     middle), as written in timestamps.txt: µs to the thousandth, from whole numbers — a float64
     near 1.5e15 µs (an epoch clock) resolves only a quarter of a microsecond."""
     start, span = int(exposure.start_us), int(exposure.duration_us)
-    steps = max(count - 1, 1)
-    out = []
-    for k in range(count):
-        num = (2 * k + 1) * span if count == 1 else k * span  # over 2 · steps, or over steps
-        den = 2 if count == 1 else steps
-        milli = (num * 1000 * 2 + den) // (2 * den)  # the thousandths, rounded half up
-        whole, frac = divmod(milli, 1000)
-        out.append(f"{start + whole}" + (f".{frac:03d}".rstrip("0") if frac else ""))
-    return out
+    if count == 1:
+        return [exact_us_text(start, span, 2)]
+    return [exact_us_text(start, k * span, count - 1) for k in range(count)]
+
+
+def exact_us_text(base: int, num: int, den: int) -> str:
+    """``base + num / den`` µs (whole numbers, ``num`` ≥ 0, ``den`` > 0) written to the
+    thousandth, rounded half up, without a float in between."""
+    milli = (num * 2000 + den) // (2 * den)
+    whole, frac = divmod(milli, 1000)
+    return f"{base + whole}" + (f".{frac:03d}".rstrip("0") if frac else "")
 
 
 def fmt_fraction(f: float) -> str:

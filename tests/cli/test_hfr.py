@@ -264,3 +264,27 @@ def test_a_run_in_one_process_discards_an_unfinished_runs_stage(gapped, tmp_path
     assert r.exit_code == 0, r.output
     assert "an unfinished run of" in r.output and "is discarded" in r.output
     assert not stage.exists() and out.is_dir()
+
+
+def test_gap_times_are_written_exactly_on_an_epoch_clock():
+    from trmd_cli.hfr import Edge, gap_frames, timestamp_row
+
+    img = np.zeros((4, 4), np.float32)
+    t0 = 1_468_941_032_229_165  # an exposure's end, µs since the epoch
+    a = Edge("a", img, img, t0 - 6_000.0, float(t0), 7, 6_000, 0.2)
+    b = Edge("b", img, img, float(t0 + 4_000), float(t0 + 10_000), 7, 6_000, 0.2)
+    frames, _ = gap_frames(a, b)
+    # a step of 1 ms (6 ms over 6 steps): floor(4 − 0.5) = 3 frames, the 4 ms gap in 4 parts
+    assert [timestamp_row(f).split()[0] for f in frames] == [
+        str(t0 + 1000), str(t0 + 2000), str(t0 + 3000)]
+    b3 = Edge("b", img, img, float(t0 + 3_500), float(t0 + 9_500), 7, 6_000, 0.2)
+    frames, _ = gap_frames(a, b3)  # 3 frames, the 3.5 ms gap in 4 parts
+    assert [timestamp_row(f).split()[0] for f in frames] == [
+        f"{t0 + 875}", f"{t0 + 1750}", f"{t0 + 2625}"]
+    b7 = Edge("b", img, img, float(t0 + 3_000), float(t0 + 9_000), 7, 6_000, 0.2)
+    frames, _ = gap_frames(a, b7)  # 2 frames, the 3 ms gap in 3 parts
+    assert [timestamp_row(f).split()[0] for f in frames] == [f"{t0 + 1000}", f"{t0 + 2000}"]
+    b_odd = Edge("b", img, img, float(t0 + 3_001), float(t0 + 9_001), 7, 6_000, 0.2)
+    frames, _ = gap_frames(a, b_odd)  # thirds of 3001 µs: 1000.333 and 2000.667
+    assert [timestamp_row(f).split()[0] for f in frames] == [
+        f"{t0 + 1000}.333", f"{t0 + 2000}.667"]
