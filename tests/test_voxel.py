@@ -60,8 +60,8 @@ def test_torch_twin_matches_numpy(rng):
     win = Exposure(10_000, 90_001)
     ref = scer_voxels(ev, win, 3)
     got = scer_voxels_torch(torch.from_numpy(ev.x.astype(np.int64)),
-                            torch.from_numpy(ev.y.astype(np.int64)), torch.from_numpy(ev.t),
-                            torch.from_numpy(ev.p), win, 3, ev.height, ev.width)
+                            torch.from_numpy(ev.y.astype(np.int64)), torch.from_numpy(ev.t.copy()),
+                            torch.from_numpy(ev.p.copy()), win, 3, ev.height, ev.width)
     np.testing.assert_array_equal(got.numpy(), ref)
     np.testing.assert_array_equal(scer_from_bins(torch.from_numpy(event_bins(ev, win, 6))).numpy(),
                                   ref)

@@ -190,11 +190,36 @@ class PixelEvents:
 
     def without(self, hot_mask: np.ndarray | None) -> PixelEvents:
         """The same window without the events of the pixels ``hot_mask`` (H, W) marks."""
+        check_mask(hot_mask, self.width, self.height)
         if hot_mask is None or not hot_mask.any() or len(self.pix) == 0:
             return self
         keep = ~hot_mask.reshape(-1)[self.pix]
         return PixelEvents(self.pix[keep], self.t_rel[keep], self.p[keep], self.width,
                            self.height, self.exposure)
+
+
+def finite_instants(instants) -> np.ndarray:
+    """``instants`` as a flat float64 array, refused where one is NaN or infinite (clamping
+    would put it at an end of the window, silently)."""
+    out = np.asarray(instants, np.float64).reshape(-1)
+    if not np.isfinite(out).all():
+        bad = out[~np.isfinite(out)][0]
+        raise InputError(f"an instant is {bad}: the instants must be finite numbers",
+                         hint="give times inside the exposure (µs) or fractions of it")
+    return out
+
+
+def check_mask(mask: np.ndarray | None, width: int, height: int, what: str = "hot_mask"
+               ) -> None:
+    """Refuse a pixel mask that is not (H, W) bool for a ``width`` × ``height`` sensor: a
+    flattened mask of another shape would mark other pixels."""
+    if mask is None:
+        return
+    mask = np.asarray(mask)
+    if mask.shape != (height, width) or mask.dtype != bool:
+        raise InputError(f"`{what}` is {mask.dtype} of shape {mask.shape}, expected bool of "
+                         f"shape ({height}, {width}) for the {width}x{height} sensor",
+                         hint="one True per pixel whose events are to be ignored")
 
 
 def _check_window(window: PixelEvents, exposure: Exposure | None) -> None:
@@ -346,7 +371,7 @@ class EdiEvents:
     def sparse_levels(self, fractions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """S at instants (fractions of the window, clamped to [0, 1]) for the pixels that fired:
         ``(pixels (U,) flat indices, levels (K, U) int64)``; every other pixel's S is 0."""
-        fr = np.clip(np.asarray(fractions, np.float64).reshape(-1), 0.0, 1.0)
+        fr = np.clip(finite_instants(fractions), 0.0, 1.0)
         k = len(fr)
         pixels, group = self._runs
         u = len(pixels)
@@ -441,6 +466,7 @@ def signed_counts(events: EventStream, ref_us: float, targets_us,
     """
     targets = np.asarray(targets_us, np.float64).reshape(-1)
     h, w = events.height, events.width
+    check_mask(hot_mask, w, h)
     k = len(targets)
     if k == 0:
         return np.zeros((0, h, w), np.float32)
@@ -539,8 +565,8 @@ class EdiBins:
     @classmethod
     def build(cls, bins: np.ndarray, exposure: tuple[float, float] = (0.0, 1.0)) -> EdiBins:
         bins = np.asarray(bins)
-        if bins.ndim != 3:
-            raise ShapeError(f"bins have shape {bins.shape}, expected (M, H, W)")
+        if bins.ndim != 3 or bins.shape[0] == 0:
+            raise ShapeError(f"bins have shape {bins.shape}, expected (M, H, W) with M ≥ 1")
         if not np.isfinite(bins).all():
             raise InputError("bins hold NaN or infinite values")
         f0, f1 = (float(v) for v in exposure)
@@ -563,7 +589,7 @@ class EdiBins:
         """S at instants (fractions of the span, clamped to [0, 1]): (K, H, W) float64."""
         m = self.bins.shape[0]
         out = []
-        for fr in np.ravel(fractions):
+        for fr in finite_instants(fractions):
             x = min(max(float(fr), 0.0), 1.0) * m
             j = min(int(np.floor(x)), m - 1)
             out.append(self.edges[j] + (x - j) * self.bins[j])

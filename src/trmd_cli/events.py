@@ -46,6 +46,9 @@ class Exposure:
 
     def instants_us(self, n: int) -> np.ndarray:
         """The 2N+1 latent-frame instants t0 + k·T/(2N), k = 0..2N, as float64 µs."""
+        if isinstance(n, bool) or int(n) != n or n < 1:
+            raise InputError(f"N must be a whole number ≥ 1, got {n!r}",
+                             hint="use `n=3` (7 latent frames)")
         return self.start_us + np.arange(2 * n + 1) * (self.duration_us / (2 * n))
 
     def shifted(self, offset_us: int) -> "Exposure":
@@ -54,7 +57,8 @@ class Exposure:
 
 @dataclass(frozen=True, eq=False)
 class EventStream:
-    """Events sorted by time.
+    """Events sorted by time, immutable: the arrays are held as read-only views (what is
+    derived from a stream, e.g. a window's EDI model, is kept for it by identity).
 
     Attributes:
         x: (E,) uint16 column, 0..width-1.
@@ -72,6 +76,12 @@ class EventStream:
     height: int
 
     def __post_init__(self) -> None:
+        for name in ("x", "y", "t", "p"):
+            arr = getattr(self, name)
+            if isinstance(arr, np.ndarray) and arr.flags.writeable:
+                view = arr.view()  # (the caller's own array keeps its flags)
+                view.setflags(write=False)
+                object.__setattr__(self, name, view)
         n = len(self.t)
         for name in ("x", "y", "p"):
             if len(getattr(self, name)) != n:
@@ -119,10 +129,21 @@ class EventStream:
 
     @classmethod
     def concatenate(cls, parts: list["EventStream"]) -> "EventStream":
+        """One stream of the events of ``parts`` (of one sensor), in time order: parts that
+        overlap in time are merged (a stable sort: events of equal time keep the parts'
+        order)."""
         if not parts:
             raise InputError("no event streams to concatenate")
         w, h = parts[0].width, parts[0].height
-        return cls(*(np.concatenate([getattr(s, k) for s in parts]) for k in "xytp"), w, h)
+        for k, b in enumerate(parts[1:], 1):
+            if (b.width, b.height) != (w, h):
+                raise InputError(f"part {k} is of a {b.width}x{b.height} sensor, part 0 of "
+                                 f"{w}x{h}", hint="concatenate the events of one sensor")
+        out = cls(*(np.concatenate([getattr(s, k) for s in parts]) for k in "xytp"), w, h)
+        filled = [s for s in parts if len(s)]
+        if any(b.t[0] < a.t[-1] for a, b in zip(filled, filled[1:])):  # noqa: B905
+            out = out.take(np.argsort(out.t, kind="stable"))
+        return out
 
     def to_structured(self) -> np.ndarray:
         out = np.empty(len(self), EVENT_DTYPE)
@@ -157,6 +178,14 @@ def make_stream(
     x = np.asarray(x)
     y = np.asarray(y)
     p = np.asarray(p)
+    for name, arr in (("t", t), ("x", x), ("y", y), ("p", p)):
+        if arr.ndim != 1:
+            raise InputError(f"'{name}' has shape {arr.shape}, expected one value per event "
+                             "(1-D)", path=source, hint="give each of x, y, t, p as a 1-D array")
+    if not len(x) == len(y) == len(t) == len(p):
+        raise InputError(f"event arrays differ in length: t has {len(t)}, x {len(x)}, y "
+                         f"{len(y)}, p {len(p)}", path=source,
+                         hint="x, y, t and p need one entry per event")
     if t.dtype.kind == "f":
         if len(t) and not np.isfinite(t).all():
             bad = int(np.flatnonzero(~np.isfinite(t))[0])

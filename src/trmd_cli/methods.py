@@ -117,17 +117,27 @@ class MethodConfig:
         if self.method not in METHODS:
             raise InputError(f"unknown method {self.method!r}",
                              hint="use `method` " + " or ".join(METHODS))
-        if self.n is not None and self.n < 1:
-            raise InputError(f"N must be ≥ 1, got {self.n}", hint="use `n=3` (7 latent frames)")
-        if self.contrast is not None and not (np.isfinite(self.contrast) and self.contrast > 0):
-            raise InputError(f"`contrast` must be a positive number or 'auto', got "
-                             f"{self.contrast}")
+        check_n_contrast(self.n, self.contrast)
         if self.contrast_scope not in CONTRAST_SCOPES:
             raise InputError(f"unknown contrast scope {self.contrast_scope!r}",
                              hint="use `contrast_scope` " + " or ".join(CONTRAST_SCOPES))
         if self.precision not in PRECISIONS:
             raise InputError(f"unknown precision {self.precision!r}",
                              hint="use `precision` " + ", ".join(PRECISIONS))
+
+
+def check_n_contrast(n, contrast) -> None:
+    """Refuse an ``n`` that is not a whole number ≥ 1, or a ``contrast`` that is not a finite
+    number > 0 (None: not given, for either)."""
+    import numbers
+
+    if n is not None and (isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1):
+        raise InputError(f"N must be a whole number ≥ 1, got {n!r}",
+                         hint="use `n=3` (7 latent frames)")
+    if contrast is not None and (isinstance(contrast, bool)
+                                 or not isinstance(contrast, numbers.Real)
+                                 or not (np.isfinite(contrast) and contrast > 0)):
+        raise InputError(f"`contrast` must be a positive number or 'auto', got {contrast!r}")
 
 
 @dataclass(frozen=True)
@@ -432,6 +442,7 @@ class EdiMethod(_RemovesPattern):
     def __init__(self, n: int = DEFAULT_N, contrast: float | None = None,
                  hot_pixels: bool = True, *, recording: RecordingContrast | None = None,
                  drop_isolated: bool = True) -> None:
+        check_n_contrast(n, contrast)
         self.n = n
         self.contrast = contrast
         self.hot_pixels = hot_pixels

@@ -200,7 +200,7 @@ def interval_counts(events: EventStream, instants_us: Sequence[float]) -> tuple[
         pixel had at least one event in the interval (also when they cancel out).
     """
     inst = np.asarray(instants_us, np.float64).ravel()
-    if len(inst) < 2 or (np.diff(inst) <= 0).any():
+    if len(inst) < 2 or not np.isfinite(inst).all() or (np.diff(inst) <= 0).any():
         raise InputError("consistency needs at least two increasing instants")
     h, w = events.height, events.width
     m = len(inst) - 1

@@ -354,8 +354,8 @@ def search_contrast(blurry: np.ndarray, prep: EdiEvents | EdiBins,
     coincident points leaves c on the coarse grid.
     """
     lo, hi = bounds
-    if not 0 < lo < hi:
-        raise InputError(f"contrast search bounds {bounds} must satisfy 0 < low < high")
+    if not (0 < lo < hi < np.inf):
+        raise InputError(f"contrast search bounds {bounds} must satisfy 0 < low < high < ∞")
     if isinstance(prep, EdiBins):
         count = int(np.abs(prep.bins).sum())
         if count < MIN_EVENTS:
@@ -384,8 +384,8 @@ def search_contrast_pooled(objectives: list[ContrastObjective],
         ``(c, energy at c, whether c is at an end of bounds, evaluations per objective)``.
     """
     lo, hi = bounds
-    if not 0 < lo < hi:
-        raise InputError(f"contrast search bounds {bounds} must satisfy 0 < low < high")
+    if not (0 < lo < hi < np.inf):
+        raise InputError(f"contrast search bounds {bounds} must satisfy 0 < low < high < ∞")
     if not objectives:
         raise InputError("no exposure to estimate the contrast threshold from")
     total = sum(o.total for o in objectives)

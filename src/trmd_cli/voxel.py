@@ -31,8 +31,8 @@ def event_bins(events: EventStream, exposure: Exposure, num_bins: int, *,
     ``window``: the events of ``exposure`` already sorted per pixel
     (:class:`~trmd_cli.edi.PixelEvents`); the counts are the same, made on the fired pixels only.
     """
-    if num_bins < 1:
-        raise InputError(f"num_bins must be ≥ 1, got {num_bins}")
+    if isinstance(num_bins, bool) or int(num_bins) != num_bins or num_bins < 1:
+        raise InputError(f"num_bins must be a whole number ≥ 1, got {num_bins!r}")
     h, w = events.height, events.width
     if window is not None:
         _check_window(window, exposure)
@@ -72,8 +72,10 @@ def scer_from_bins(bins):
     if isinstance(bins, np.ndarray):
         # running sums one plane at a time (numpy's cumsum along the first axis is several times
         # slower; the same additions in the same order, negated: -(x + y) = (-x) - y exactly)
-        # in the type numpy's cumsum would sum in (integers widen)
-        bins = bins.astype(np.cumsum(bins[:0, :1, :1]).dtype, copy=False)
+        # in the type numpy's cumsum would sum in (integers widen), signed: the sums before
+        # the middle are negated, which an unsigned type would wrap around
+        total = np.cumsum(bins[:0, :1, :1]).dtype
+        bins = bins.astype(np.int64 if total.kind == "u" else total, copy=False)
         out = np.empty(bins.shape, bins.dtype)  # C order whatever the input's, as before
         if m == 0:
             return out.astype(np.float32)
@@ -166,9 +168,10 @@ def scer_voxels(events: EventStream, exposure: Exposure, n: int = 3, *,
                 window: PixelEvents | None = None) -> np.ndarray:
     """SCER voxels (2N, H, W) float32 for one exposure window (``window``: its events already
     sorted per pixel, see :func:`event_bins`)."""
-    if n < 1:
-        raise InputError(f"N must be ≥ 1, got {n}", hint="use --n 3 (7 latent frames)")
-    return scer_from_bins(event_bins(events, exposure, 2 * n, window=window))
+    if isinstance(n, bool) or int(n) != n or n < 1:
+        raise InputError(f"N must be a whole number ≥ 1, got {n!r}",
+                         hint="use `n=3` (7 latent frames)")
+    return scer_from_bins(event_bins(events, exposure, 2 * int(n), window=window))
 
 
 def scer_voxels_torch(x, y, t_us, p, exposure: Exposure, n: int, height: int, width: int):

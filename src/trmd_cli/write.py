@@ -793,10 +793,15 @@ class H5Writer:
         raise e
 
     def add_events(self, stream) -> None:
+        """Events after those added before, of the file's sensor (what its reader would
+        refuse is refused here)."""
         if len(stream) == 0:
             return
-        if int(stream.t[0]) < self._last_t:
+        if int(stream.t[0]) < self._last_t or (np.diff(stream.t) < 0).any():
             raise InputError("events must be added in time order")
+        if int(stream.x.max()) >= self.width or int(stream.y.max()) >= self.height:
+            raise InputError(f"events reach ({int(stream.x.max())}, {int(stream.y.max())}), "
+                             f"outside the file's {self.width}x{self.height} sensor")
         with self._guard():
             ev = self._f["events"]
             n0 = ev["t"].shape[0]
@@ -816,6 +821,9 @@ class H5Writer:
         if blurry.shape[:2] != (self.height, self.width):
             raise InputError(f"frame is {blurry.shape[1]}x{blurry.shape[0]}, the file's sensor "
                              f"is {self.width}x{self.height}")
+        if not np.isfinite(blurry).all():
+            raise InputError("frame holds NaN or infinite pixel values",
+                             hint="pixels are intensities in [0, 1]")
         if motion is not None:
             motion = np.asarray(motion, np.float64)
             if motion.ndim != 3 or motion.shape[1:] != (3, 3) or motion.shape[0] < 2:
@@ -918,6 +926,10 @@ def write_h5(path: str | Path, stream, *, blurry=None, exposures=None, sharp=Non
              contrast=None, motion=None, compression: str | None = None) -> Path:
     """Write events (and optionally frames, with ``motion`` (K, J, 3, 3) their true camera
     paths) in the trmd HDF5 layout, atomically."""
+    if blurry is not None and (exposures is None or len(exposures) != len(blurry)):
+        raise InputError(f"{len(blurry)} frames but "
+                         f"{'no' if exposures is None else len(exposures)} exposure windows",
+                         hint="give one exposure window per frame")
     with H5Writer(path, stream.width, stream.height, compression=compression) as w:
         w.add_events(stream)
         for k in range(0 if blurry is None else len(blurry)):
@@ -938,14 +950,22 @@ def write_events_npz(path: str | Path, stream, exposures=None, compress: bool = 
 
 
 def write_events_text(path: str | Path, stream) -> Path:
-    """E2VID-style text: first line ``W H``, then ``t x y p`` with t in float seconds and p 0/1."""
+    """E2VID-style text: first line ``W H``, then ``t x y p`` with t in float seconds and p 0/1.
+    Read back exactly for times below about 4.5·10¹⁵ µs (142 years: float seconds resolve a
+    microsecond there).
+
+    Raises:
+        InputError: no events (a text file of none reads as no event file at all).
+    """
     path = Path(path)
+    if len(stream) == 0:
+        raise InputError("no events to write: a text file without event lines reads back as "
+                         "no event file", hint="write an empty recording as .npz or .h5")
     with atomic_path(path) as tmp, open_output(tmp, text=True) as fh:
         fh.write(f"{stream.width} {stream.height}\n")
-        if len(stream):
-            # seconds with µs resolution, written via integer parts so no float rounding
-            sec, us = np.divmod(stream.t, 1_000_000)
-            cols = np.stack([sec, us, stream.x, stream.y, (stream.p > 0)], 1).astype(np.int64)
-            lines = "\n".join(f"{a}.{b:06d} {c} {d} {e}" for a, b, c, d, e in cols.tolist())
-            fh.write(lines + "\n")
+        # seconds with µs resolution, written via integer parts so no float rounding
+        sec, us = np.divmod(stream.t, 1_000_000)
+        cols = np.stack([sec, us, stream.x, stream.y, (stream.p > 0)], 1).astype(np.int64)
+        lines = "\n".join(f"{a}.{b:06d} {c} {d} {e}" for a, b, c, d, e in cols.tolist())
+        fh.write(lines + "\n")
     return path

@@ -214,3 +214,12 @@ def test_existing_output_needs_overwrite(tmp_path, still):
     r = run("simulate", still, "-o", out, "--size", "32x32", "--overwrite")
     assert r.exit_code == 0, r.output
     assert out.read_bytes()[:4] == b"\x89HDF"
+
+
+def test_flags_one_kind_of_simulation_ignores_are_said(tmp_path, still):
+    r = run("simulate", still, "-o", tmp_path / "t.h5", "--training-set", "--count", "1",
+            "--crop", "32", "--size", "64x48", "--frames", "3")
+    assert r.exit_code == 0, r.output
+    assert "--size is ignored" in r.output and "--frames is ignored" in r.output
+    r = run("simulate", still, "-o", tmp_path / "s.h5", "--size", "64x48", "--crop", "32")
+    assert r.exit_code == 0 and "--crop is ignored" in r.output, r.output

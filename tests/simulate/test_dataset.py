@@ -160,3 +160,21 @@ def test_pregenerate_with_workers_writes_the_same_samples(tmp_path, images):
     for i in range(3):
         for k in ("blurry", "voxels", "sharp", "contrast"):
             assert torch.equal(a[i][k], b[i][k])
+
+
+@pytest.mark.parametrize("kw, needle", [
+    ({"gain": [1, 0.5]}, "gain = \\[1, 0.5\\] is not a range 0 < low ≤ high"),
+    ({"gain": [0, 0]}, "gain"),
+    ({"zoom": [-1, -1]}, "zoom"),
+    ({"read_noise": [-1, -1]}, "read_noise = \\[-1, -1\\] is not a range 0 ≤ low"),
+    ({"exposure_ms": [0, 0]}, "exposure_ms"),
+    ({"sensor_ranges": {"contrast": 0.3}}, "sensor_ranges.contrast = 0.3 is not a range"),
+])
+def test_simulator_ranges_that_cannot_be_are_refused(kw, needle):
+    """Each names its key (was: a numpy ValueError, a 'float is not iterable', or a run on
+    black images for a gain of 0)."""
+    from trmd_cli.errors import InputError
+    from trmd_cli.simulate.dataset import SimulatedDataset
+
+    with pytest.raises(InputError, match=needle):
+        SimulatedDataset([np.zeros((64, 64), np.float32)], crop=32, **kw)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -76,6 +77,10 @@ def test_train_command_runs_and_summarises(setup, tmp_path):
     assert (out / "final.safetensors").exists() and (out / "curve.png").exists()
     saved = json.loads((out / "recipe.json").read_text())
     assert saved["recipe"]["train"]["steps"] == 4 and saved["data"] == [str(data.resolve())]
+    # `info` shows the run's own validation figures
+    d = json.loads(runner.invoke(app, ["info", str(out / "final.safetensors"), "--json"]).stdout)
+    shown = re.search(r"validation PSNR: middle ([\d.]+)", r.stdout)
+    assert d["validation"]["trmd"]["psnr_mid"] == pytest.approx(float(shown[1]), abs=0.01)
     # continuing the finished run with a longer length
     r = runner.invoke(app, ["train", "--out", str(out), "--resume", "--set", "train.steps=6"])
     assert r.exit_code == 0, r.output
@@ -121,6 +126,39 @@ def test_bad_input_gives_one_line_and_exit_2(setup, tmp_path, args, needle):
     assert "Traceback" not in r.output
     assert (tmp_path / "nonempty" / "keep.txt").read_text() == "keep me"
     assert not (tmp_path / "out" / "final.safetensors").exists()
+
+
+@pytest.mark.parametrize("workers", [0, 1])
+def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(setup, tmp_path, workers):
+    """Else a rerun would be refused ('not empty') and a resume too ('no checkpoint'). The
+    line names the file and the fix, also when a DataLoader worker met it."""
+    _, rec = setup
+    bad = tmp_path / "imgs"
+    bad.mkdir()
+    (bad / "bad.png").write_bytes(b"not an image")
+    r = runner.invoke(app, ["train", "--data", str(bad), "--recipe", str(rec), "--out",
+                            str(tmp_path / "run"), "--set", "data.length=4",
+                            "--set", f"data.num_workers={workers}"])
+    assert r.exit_code == 2 and "bad.png: not a readable image" in r.output, r.output
+    assert "Caught" not in r.output
+    assert not (tmp_path / "run").exists()
+    (tmp_path / "mine").mkdir()
+    r = runner.invoke(app, ["train", "--data", str(bad), "--recipe", str(rec), "--out",
+                            str(tmp_path / "mine"), "--set", "data.length=4",
+                            "--set", "data.num_workers=0"])
+    assert r.exit_code == 2 and (tmp_path / "mine").is_dir()  # the user's own folder stays
+    assert not any((tmp_path / "mine").iterdir())
+
+
+def test_info_describes_a_training_checkpoint(setup, tmp_path):
+    data, rec = setup
+    out = tmp_path / "run"
+    r = runner.invoke(app, ["train", "--data", str(data), "--recipe", str(rec), "--out",
+                            str(out), "--stop-after", "3"])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["info", str(out / "checkpoint.safetensors"), "--json"])
+    assert r.exit_code == 0, r.output
+    assert '"checkpoint"' in r.stdout
 
 
 def test_missing_data_or_out_are_usage_errors(setup, tmp_path):

@@ -182,6 +182,13 @@ def test_build_data_trmd_h5_and_supervision_check(tmp_path):
                    recipe("model.n=3", "data.val_fraction=0.0"))
 
 
+def test_a_crop_larger_than_the_frames_is_refused(tmp_path):
+    """Whole frames of another size would train on what the recipe does not say."""
+    labelled = write_trmd_h5(tmp_path / "t.h5", k=4)
+    with pytest.raises(InputError, match="sample 0 is 24x24, smaller than the crop 1000"):
+        build_data([labelled], recipe("data.crop=1000", "data.val_fraction=0.0")).train[0]
+
+
 def test_build_data_image_folder_uses_the_simulator(tmp_path):
     make_image_folder(tmp_path / "imgs", 4)
     r = recipe("data.length=10", "data.val_fraction=0.25", "data.val_samples=3",

@@ -157,6 +157,20 @@ def guarded(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+def _own_line(e: TrmdError) -> str:
+    """The error's line; for one raised in a torch DataLoader worker (which raises it again
+    as "Caught FormatError in DataLoader worker process 0." with the worker's traceback after
+    it), the worker's own line: the file and the fix."""
+    text = str(e)
+    if text.startswith("Caught ") and "Original Traceback" in text:
+        last = text.rstrip().splitlines()[-1]
+        name = type(e).__name__
+        for prefix in (f"{type(e).__module__}.{name}: ", f"{name}: "):
+            if last.startswith(prefix):
+                return last[len(prefix):]
+    return text
+
+
 def _run(fn: Callable, args, kwargs):
     """Call the command; turn every failure into one line on stderr and an exit code."""
     try:
@@ -170,7 +184,7 @@ def _run(fn: Callable, args, kwargs):
     except TrmdError as e:
         if state["verbose"]:
             err.print_exception()
-        raise fail(_escape(as_flags(str(e))), e.exit_code) from None
+        raise fail(_escape(as_flags(_own_line(e))), e.exit_code) from None
     except Terminated:
         raise fail("terminated; no partial output was left", 143) from None
     except KeyboardInterrupt:

@@ -32,9 +32,9 @@ def simulate(
     exposure_ms: Annotated[float | None, typer.Option(
         "--exposure-ms", help="Exposure time (default: 20 ms for a still, 3 frame intervals "
         "for a video or frame folder).")] = None,
-    size: Annotated[str, typer.Option(
-        "--size", help="Output size WxH; the still or the frames are resized/cropped to it.")
-    ] = "346x260",
+    size: Annotated[str | None, typer.Option(
+        "--size", help="Output size WxH; the still or the frames are resized/cropped to it "
+        "(default 346x260).")] = None,
     timestamps: Annotated[Path | None, typer.Option(
         "--timestamps", help="Frame folder or video: file with one time in seconds per frame.",
         readable=False)
@@ -77,7 +77,8 @@ def simulate(
         "randomised crop×crop training samples (motion, sensor and noise drawn per sample; "
         "a sensor, noise, motion or exposure flag given fixes that value for every sample).")
     ] = False,
-    crop: Annotated[int, typer.Option("--crop", min=8, help="--training-set sample size.")] = 128,
+    crop: Annotated[int | None, typer.Option(
+        "--crop", min=8, help="--training-set sample size (default 128).")] = None,
     workers: Annotated[int, typer.Option(
         "--workers", min=1, help="--training-set: simulating processes.")] = 1,
     overwrite: Overwrite = False,
@@ -115,7 +116,15 @@ def simulate(
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive finite number, got {fps}",
                          hint="e.g. --fps 30")
-    w, h = parse_sensor(size, "--size")  # type: ignore[misc]
+    # what one kind of simulation takes and the other does not is said, not dropped unsaid
+    for flag, given, kind in (("--size", size, True), ("--frames", frames, True),
+                              ("--crop", crop, False)):
+        if given is not None and kind == training_set:
+            warn(f"{flag} is ignored: " + ("--training-set samples are --crop squares of one "
+                                           "exposure" if training_set else
+                                           "it sizes --training-set samples"))
+    crop = 128 if crop is None else crop
+    w, h = parse_sensor(size or "346x260", "--size")  # type: ignore[misc]
     if not (16 <= w <= 8192 and 16 <= h <= 8192):
         # below 16 px no threshold or motion can be measured on the result; above 8192 the
         # frames alone would fill the memory before a single event

@@ -339,6 +339,18 @@ def read_metadata(path: str | Path | None = None) -> dict[str, Any]:
     return _decode(raw, p)
 
 
+def _trained_validation(figures) -> dict[str, Any] | None:
+    """A run's own validation figures (``figures`` of ``trmd train``'s weights) in the layout
+    of the shipped weights' ``validation``: the network's PSNR at the run's last validation,
+    and on what."""
+    if not isinstance(figures, dict) or figures.get("val_psnr_mid") is None:
+        return None
+    return {"trmd": {"psnr_mid": float(figures["val_psnr_mid"]),
+                     "psnr_seq": float(figures.get("val_psnr_seq", float("nan")))},
+            **({"set": figures["validation"]} if isinstance(figures.get("validation"), str)
+               else {})}
+
+
 def describe_weights(path: str | Path | None = None) -> dict[str, Any]:
     """What a weights file is, for people (``trmd info W.safetensors``), without torch.
 
@@ -378,7 +390,8 @@ def describe_weights(path: str | Path | None = None) -> dict[str, Any]:
     if args.get("timing"):
         inputs.append("the events' sub-bin timing (voxel.scer_levels; raw events needed)")
     recipe = meta.get("recipe")
-    val = meta.get("validation") if isinstance(meta.get("validation"), dict) else None
+    val = meta.get("validation") if isinstance(meta.get("validation"), dict) else \
+        _trained_validation(meta.get("figures"))
     return {
         "file": str(p),
         "sha256": weights_hash(p),
@@ -474,7 +487,7 @@ def _resolve_checkpoint(meta: dict[str, Any], path: Path) -> tuple[dict[str, Any
     import torch
     from safetensors import safe_open
 
-    from .registry import create_model
+    from . import create_model  # (the package's: the variants register as it loads them)
 
     args = dict(meta["args"])
     try:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from ..events import EventStream, Exposure
 
 __all__ = ["Frame", "Recording", "MemoryRecording", "ReadOptions"]
@@ -46,6 +47,25 @@ class ReadOptions:
     exposure_length_us: int | None = None
     stamp: str | None = None
     topics: tuple[str, ...] | None = None
+
+    def __post_init__(self) -> None:
+        from ..units import UNIT_SCALE_US
+
+        for name in ("sensor", "frame_size"):
+            size = getattr(self, name)
+            if size is not None and not (
+                    len(size) == 2 and all(isinstance(v, (int, np.integer))
+                                           and not isinstance(v, bool) and 0 < v <= 65535
+                                           for v in size)):
+                raise InputError(f"`{name}` {size!r} is not (width, height) in whole pixels "
+                                 "1..65535", hint="e.g. `sensor=(346, 260)`")
+        if self.columns is not None and sorted(c for c in self.columns if c != "_") != \
+                ["p", "t", "x", "y"]:
+            raise InputError(f"`columns` {self.columns!r} must name t, x, y and p once each "
+                             "(`_` for a column to skip)", hint="e.g. `columns=t,y,x,p`")
+        if self.time_unit is not None and self.time_unit not in UNIT_SCALE_US:
+            raise InputError(f"`time_unit` {self.time_unit!r} is not one of s, ms, us, ns",
+                             hint="e.g. `time_unit='us'`")
 
 
 @dataclass(frozen=True, eq=False)

@@ -81,10 +81,7 @@ class SensorRanges:
                 if not 0 <= v <= 1:
                     raise InputError(f"sensor_ranges.clean_prob must be in [0, 1], got {v}")
                 continue
-            lo, hi = (float(x) for x in v)
-            if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
-                raise InputError(f"sensor_ranges.{f.name} = {v} is not a range 0 ≤ low ≤ high")
-            object.__setattr__(self, f.name, (lo, hi))
+            object.__setattr__(self, f.name, _range(f"sensor_ranges.{f.name}", v, low=0.0))
         if self.contrast[0] <= 0 or self.on_off_ratio[0] <= 0 or self.eps[0] <= 0:
             raise InputError("sensor_ranges.contrast, on_off_ratio and eps must be > 0")
 
@@ -105,6 +102,23 @@ class SensorRanges:
                                 hot_pixel_fraction=0.0, eps=eps, random_phase=False)
         return SensorConfig(contrast_on=c_on, contrast_off=c_off, eps=eps, random_phase=True,
                             **noisy)
+
+
+def _range(name: str, value, *, low: float, open_low: bool = False) -> tuple[float, float]:
+    """``value`` as a range ``(lo, hi)`` of finite numbers with ``low ≤ lo ≤ hi`` (``low < lo``
+    when ``open_low``); one clear line naming ``name`` otherwise."""
+    bound = f"{low:g} < low" if open_low else f"{low:g} ≤ low"
+    try:
+        lo, hi = (float(x) for x in value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} = {value!r} is not a range [low, high]",
+                         hint=f"e.g. {name} = [1.0, 2.0]") from None
+    ok = math.isfinite(lo) and math.isfinite(hi) and lo <= hi and (lo > low if open_low
+                                                                    else lo >= low)
+    if not ok:
+        raise InputError(f"{name} = {value!r} is not a range {bound} ≤ high",
+                         hint=f"e.g. {name} = [1.0, 2.0]")
+    return lo, hi
 
 
 def _coerce(cls, value, name: str):
@@ -216,14 +230,12 @@ class SimulatedDataset(_torch_dataset_base()):  # type: ignore[misc]
         self.n, self.crop, self.length, self.seed = int(n), int(crop), int(length), int(seed)
         self.sensor_ranges = _coerce(SensorRanges, sensor_ranges, "sensor_ranges")
         self.motion = _coerce(MotionRanges, motion, "motion")
-        self.exposure_ms = tuple(float(x) for x in exposure_ms)
-        self.gain = tuple(float(x) for x in gain)
-        self.read_noise = tuple(float(x) for x in read_noise)
-        self.zoom = tuple(float(x) for x in zoom)
+        self.exposure_ms = _range("exposure_ms", exposure_ms, low=0.0, open_low=True)
+        self.gain = _range("gain", gain, low=0.0, open_low=True)
+        self.read_noise = _range("read_noise", read_noise, low=0.0)
+        self.zoom = _range("zoom", zoom, low=0.0, open_low=True)
         self.max_px_per_step = float(max_px_per_step)
         self.levels = bool(levels)
-        if not 0 < self.exposure_ms[0] <= self.exposure_ms[1]:
-            raise InputError(f"exposure_ms {exposure_ms} is not a positive range")
 
     def __len__(self) -> int:
         return self.length

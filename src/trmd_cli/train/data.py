@@ -250,10 +250,12 @@ class CropDataset(Dataset):
         item = dict(self.base[index])
         h, w = item["blurry"].shape[-2:]
         c = self.crop
+        if c and (h < c or w < c):
+            # (whole frames of another size would batch badly, or train on what the recipe
+            # does not say)
+            raise InputError(f"sample {index} is {w}x{h}, smaller than the crop {c}",
+                             hint="lower data.crop")
         if c and (h > c or w > c):
-            if h < c or w < c:
-                raise InputError(f"sample {index} is {w}x{h}, smaller than the crop {c}",
-                                 hint="lower data.crop")
             if self.random_crop:
                 g = _rng(self.seed, self.epoch, index)
                 y, x = int(g.integers(0, h - c + 1)), int(g.integers(0, w - c + 1))

@@ -28,6 +28,7 @@ from __future__ import annotations
 import os
 import random
 import re
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -239,10 +240,22 @@ def train(data: Sequence[str | Path] | None = None, *, recipe: Recipe | None = N
     if not data_paths:
         raise InputError("no training data given", hint="pass `data` (image folders or .h5 sets)")
 
+    # a fresh run stopped before its first checkpoint leaves nothing: a folder of a recipe and
+    # a log that no checkpoint continues would be refused by a rerun and by a resume alike
+    existed = run_dir.exists()
+    fresh = not resume and not (existed and any(run_dir.iterdir()))
     dist = ddp.setup(device)
     try:
         return _train(recipe, data_paths, run_dir, resumed, init_weights, dist, reporter,
                       stop_after_steps, clock, t_start, notes)
+    except BaseException:
+        if fresh and dist.rank == 0 and not (run_dir / CHECKPOINT).exists():
+            for left in list(run_dir.iterdir()) if existed else [run_dir]:
+                if left.is_dir():
+                    shutil.rmtree(left, ignore_errors=True)
+                else:
+                    left.unlink(missing_ok=True)
+        raise
     finally:
         ddp.teardown(dist)
 
