@@ -151,3 +151,17 @@ def test_the_text_writer_refuses_a_stream_it_could_not_read_back(tmp_path):
     with pytest.raises(InputError, match="no events to write"):
         write_events_text(tmp_path / "e.txt", EventStream.empty(5, 4))
     assert not list(tmp_path.iterdir())
+
+
+def test_a_psnr_range_and_an_image_shape_that_cannot_be_are_refused(tmp_path):
+    from trmd_cli.metrics import psnr
+    from trmd_cli.write import write_image
+
+    a = np.zeros((4, 4), np.float32)
+    with pytest.raises(InputError, match="data_range"):
+        psnr(a, a + 0.1, data_range=float("nan"))
+    with pytest.raises(InputError, match=r"shape \(4, 4, 4\)"):
+        write_image(tmp_path / "four.png", np.zeros((4, 4, 4), np.float32))
+    with pytest.raises(InputError, match=r"shape \(16,\)"):
+        write_image(tmp_path / "flat.png", np.zeros(16, np.float32))
+    assert not list(tmp_path.iterdir())

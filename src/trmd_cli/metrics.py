@@ -45,8 +45,8 @@ def _check_pair(a, b) -> None:
 def psnr(a, b, data_range: float = 1.0) -> float:
     """PSNR in dB over all elements of two same-shape images; ``inf`` when they are equal."""
     _check_pair(a, b)
-    if data_range <= 0:
-        raise InputError(f"data_range must be positive, got {data_range}")
+    if not (math.isfinite(data_range) and data_range > 0):
+        raise InputError(f"data_range must be a positive number, got {data_range}")
     if isinstance(a, np.ndarray):
         diff = a.astype(np.float64) - np.asarray(b, np.float64)
         mse = float(np.mean(diff * diff))

@@ -433,6 +433,10 @@ def _image_bytes(path: Path, image: np.ndarray, bit_depth: int) -> bytes:
     """The encoded file of ``image`` in the format ``path``'s suffix names."""
     import cv2
 
+    shape = np.shape(image)
+    if not (len(shape) == 2 or (len(shape) == 3 and shape[2] in (1, 3))):
+        raise InputError(f"an image of shape {shape}: expected (H, W) gray or (H, W, 3) RGB",
+                         path=path)
     arr = image if image.dtype in (np.uint8, np.uint16) else to_uint(image, bit_depth)
     if arr.ndim == 3:
         arr = arr[..., ::-1]  # RGB → OpenCV's BGR
