@@ -46,13 +46,19 @@ class Exposure:
 
     def instants_us(self, n: int) -> np.ndarray:
         """The 2N+1 latent-frame instants t0 + k·T/(2N), k = 0..2N, as float64 µs."""
-        if isinstance(n, bool) or int(n) != n or n < 1:
-            raise InputError(f"N must be a whole number ≥ 1, got {n!r}",
-                             hint="use `n=3` (7 latent frames)")
+        n = check_n(n)
         return self.start_us + np.arange(2 * n + 1) * (self.duration_us / (2 * n))
 
     def shifted(self, offset_us: int) -> "Exposure":
         return Exposure(self.start_us + offset_us, self.end_us + offset_us)
+
+
+def check_n(n, name: str = "N", hint: str = "use `n=3` (7 latent frames)") -> int:
+    """``n`` as an int, refused unless a whole number ≥ 1 (N, or another count ``name``)."""
+    if isinstance(n, bool) or not isinstance(n, (int, float, np.integer, np.floating)) \
+            or int(n) != n or n < 1:
+        raise InputError(f"{name} must be a whole number ≥ 1, got {n!r}", hint=hint)
+    return int(n)
 
 
 @dataclass(frozen=True, eq=False)

@@ -33,7 +33,7 @@ import numpy as np
 
 from .edi import EdiBins, EdiEvents, PixelEvents, check_blurry, hot_pixel_mask, propagate
 from .errors import InputError, ShapeError
-from .events import EventStream, Exposure
+from .events import EventStream, Exposure, check_n
 from .fixed_pattern import FixedPattern
 from .isolated import bins_without_isolated, without_isolated
 from .precision import PRECISIONS
@@ -131,9 +131,8 @@ def check_n_contrast(n, contrast) -> None:
     number > 0 (None: not given, for either)."""
     import numbers
 
-    if n is not None and (isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1):
-        raise InputError(f"N must be a whole number ≥ 1, got {n!r}",
-                         hint="use `n=3` (7 latent frames)")
+    if n is not None:
+        check_n(n)
     if contrast is not None and (isinstance(contrast, bool)
                                  or not isinstance(contrast, numbers.Real)
                                  or not (np.isfinite(contrast) and contrast > 0)):

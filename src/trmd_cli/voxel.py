@@ -17,7 +17,7 @@ import numpy as np
 
 from .edi import PixelEvents, cumsum_rows
 from .errors import InputError, check_shape
-from .events import EventStream, Exposure
+from .events import EventStream, Exposure, check_n
 
 __all__ = ["event_bins", "scer_from_bins", "bins_from_scer", "resample_bins", "spread_bins",
            "scer_levels", "scer_voxels", "scer_voxels_torch", "voxel_instants"]
@@ -31,8 +31,7 @@ def event_bins(events: EventStream, exposure: Exposure, num_bins: int, *,
     ``window``: the events of ``exposure`` already sorted per pixel
     (:class:`~trmd_cli.edi.PixelEvents`); the counts are the same, made on the fired pixels only.
     """
-    if isinstance(num_bins, bool) or int(num_bins) != num_bins or num_bins < 1:
-        raise InputError(f"num_bins must be a whole number ≥ 1, got {num_bins!r}")
+    num_bins = check_n(num_bins, "num_bins", hint=None)
     h, w = events.height, events.width
     if window is not None:
         _check_window(window, exposure)
@@ -168,10 +167,7 @@ def scer_voxels(events: EventStream, exposure: Exposure, n: int = 3, *,
                 window: PixelEvents | None = None) -> np.ndarray:
     """SCER voxels (2N, H, W) float32 for one exposure window (``window``: its events already
     sorted per pixel, see :func:`event_bins`)."""
-    if isinstance(n, bool) or int(n) != n or n < 1:
-        raise InputError(f"N must be a whole number ≥ 1, got {n!r}",
-                         hint="use `n=3` (7 latent frames)")
-    return scer_from_bins(event_bins(events, exposure, 2 * int(n), window=window))
+    return scer_from_bins(event_bins(events, exposure, 2 * check_n(n), window=window))
 
 
 def scer_voxels_torch(x, y, t_us, p, exposure: Exposure, n: int, height: int, width: int):

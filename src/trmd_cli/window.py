@@ -66,13 +66,12 @@ def exposure_from_user(t0: float, t1: float, time_unit: str | None = None,
         raise InputError(f"unknown time unit {time_unit!r}", hint="use s, ms, us or ns")
     scale = UNIT_SCALE_US[unit]
     for v in (t0, t1):
+        us = float(v) * scale
         # as for the file's times (:func:`~trmd_cli.units.to_microseconds`): beyond ±2**62 µs
         # (≈146 000 years) a value is a unit mistake, and int64 time overflows
-        if abs(float(v)) * scale >= 2.0**62:
+        if abs(us) >= 2.0**62:
             raise InputError(f"`exposure` value {v:g} {unit} is out of range",
                              hint="give T0 T1 in µs (whole numbers) or s, or set `time_unit`")
-    for v in (t0, t1):
-        us = float(v) * scale
         if abs(us - round(us)) > max(1e-3, 4 * float(np.spacing(abs(us)))):
             # event times are whole µs: a window between them would be rounded, silently
             raise InputError(f"`exposure` value {v:g} {unit} is {us:g} µs, not a whole number "

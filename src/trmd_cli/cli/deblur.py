@@ -225,8 +225,6 @@ def deblur(
                            fixed_pattern=remove_pattern)
     if video is not None and not (math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number, got {fps}", hint="e.g. --fps 10")
-    if video is not None and Path(video).suffix.lower() in VIDEO_SUFFIXES:
-        check_fps(video, fps)
     offset = parse_duration_us(time_offset) if time_offset else 0
     opts = read_options(columns, one_based, time_unit, sensor, exposure_length, stamp, topics)
     if output.suffix.lower() in VIDEO_SUFFIXES and not output.is_dir():
@@ -260,6 +258,7 @@ def deblur(
     check_output(output, overwrite, inputs=[*inputs, weights], folder=True)
     if video is not None:
         check_video_path(video)
+        check_fps(video, fps)
         # a video inside the output folder would go with the folder it replaces
         check_output(video, overwrite, inputs=[*inputs, weights])
         if output.resolve() in video.resolve().parents:

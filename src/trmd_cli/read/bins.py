@@ -129,8 +129,9 @@ def describe_bins(path: str | Path) -> dict:
         raise FormatError(f"binned events of shape {shape}, expected (F·B, H, W) or "
                           "(F, B, H, W)", path=path, hint=BINNED_HINT)
     whole = np.abs(np.asarray(counts, np.float64)).sum()
-    return {"format": f"binned events ({_format(path)}, '{BINS_KEY}')" if _format(path) != "npy"
-            else "binned events (npy)",
+    fmt = _format(path)
+    return {"format": "binned events (npy)" if fmt == "npy" else
+            f"binned events ({fmt}, '{BINS_KEY}')",
             "shape": list(shape), "dtype": str(counts.dtype),
             "sensor": f"{shape[-1]}x{shape[-2]}",
             "abs_count": int(whole) if float(whole).is_integer() else float(whole),
