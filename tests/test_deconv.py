@@ -12,9 +12,11 @@ import torch
 from trmd_cli import deconv
 from trmd_cli.deconv import (
     ANCHOR_CONTRAST,
+    ANCHOR_DARK_GAIN,
     NOISE_SCALE,
     BlurOperator,
     DeconvConfig,
+    anchor_gain,
     change_agreement,
     change_of_log,
     data_weights,
@@ -144,6 +146,46 @@ def test_anchor_fills_what_the_blur_erased():
                           anchor=noisy).frames([0.5])[0]
     assert psnr(alone[inner], sharp[inner]) < 20
     assert psnr(anchored[inner], sharp[inner]) > psnr(noisy[inner], sharp[inner]) + 2
+
+
+def test_anchor_gain_is_the_relative_error_below_the_reference():
+    """α ∝ 1 / (E's error)², E's error ∝ E: (0.3 / 0.15)² = 4 on a flat 0.15, 1 above the
+    reference, :data:`ANCHOR_DARK_GAIN` from a tenth of it down; colour channels averaged."""
+    flat = np.ones((20, 30), np.float32)
+    assert np.allclose(anchor_gain(0.15 * flat, 0.3), 4.0)
+    assert np.allclose(anchor_gain(0.6 * flat, 0.3), 1.0)
+    assert np.allclose(anchor_gain(0.003 * flat, 0.3), ANCHOR_DARK_GAIN)
+    assert np.allclose(anchor_gain(np.zeros((20, 30)), 0.3), ANCHOR_DARK_GAIN)
+    rgb = np.stack([0.05 * flat, 0.1 * flat, 0.15 * flat], -1)
+    assert np.allclose(anchor_gain(rgb, 0.3), 9.0)
+
+
+def test_dark_regions_follow_the_anchor_they_can_trust():
+    """A 16 px sweep over a scene half dark (0.02–0.06), half bright (0.4–0.8); B with noise of
+    σ = 0.005, the anchor with a relative error of 10 % (as EDI's, quantised in log). The noise
+    at the sweep's spectral zeros is what a uniform α leaves in the dark half (measured RMS
+    error 0.0065, the anchor's own 0.0037); α grown as the anchor's error shrinks halves it
+    (0.0031) and leaves the bright half as it was (0.0160 → 0.0162)."""
+    m = GlobalMotion((16.0, 0.0), centre=((W - 1) / 2, (H - 1) / 2))
+    op = BlurOperator(m, W, H)
+    hp, wp = op.canvas
+    tex = texture(hp, wp, seed=3).astype(np.float32)
+    left = np.arange(wp)[None, :] < wp // 2
+    big = np.where(left, 0.02 + 0.04 * tex, 0.4 + 0.4 * tex).astype(np.float32)
+    blurry, sharp = _seen(op, big)
+    rng = np.random.default_rng(0)
+    blurry = (blurry + 0.005 * rng.standard_normal(blurry.shape)).astype(np.float32)
+    anchor = (sharp * np.exp(0.1 * rng.standard_normal(sharp.shape))).astype(np.float32)
+    dark, bright = (slice(4, -4), slice(8, W // 2 - 12)), (slice(4, -4), slice(W // 2 + 12, -8))
+
+    def rms(cfg: DeconvConfig, where) -> float:
+        f = deconvolve(blurry, m, cfg, start=anchor, anchor=anchor).frames([0.5])[0]
+        return float(np.sqrt(np.mean((f[where] - sharp[where]) ** 2)))
+
+    uniform, relative = DeconvConfig(anchor_reference=None), DeconvConfig(anchor_reference=0.3)
+    assert rms(relative, dark) < 0.6 * rms(uniform, dark)
+    assert rms(relative, dark) < float(np.sqrt(np.mean((anchor - sharp)[dark] ** 2)))
+    assert abs(rms(relative, bright) - rms(uniform, bright)) < 0.05 * rms(uniform, bright)
 
 
 def test_guard_trusts_an_exact_motion_and_drops_a_wrong_one():
@@ -504,10 +546,11 @@ def test_small_motion_with_a_low_gain_is_blended_not_dropped():
     """About 3 px of camera motion: the estimate sharpens its events little (a gain between
     1.05 and 1.1, where the gain's trust is partial) though it is right to half a pixel. The
     deconvolution is blended in by that trust, not dropped for explaining "too little" of the
-    frame (measured: EDI 35.46, motion 38.19 dB, along the true path 40.46; before, EDI's)."""
+    frame (measured: gain 1.08, the motion method +3.1 / +5.6 dB over EDI, middle / sequence,
+    with OpenCV 5's warps in the simulator and +3.7 / +6.2 with OpenCV 4's; before, EDI's)."""
     motion = MotionRanges(translation_px=7, rotation_deg=0.1, scale=0.002, perspective=0,
                           curvature=0.2)
-    s = make_sample(texture(300, 400, seed=9), size=(160, 120), rng=np.random.default_rng(9),
+    s = make_sample(texture(300, 400, seed=4), size=(160, 120), rng=np.random.default_rng(4),
                     motion=motion, sensor=SensorConfig.clean(0.2), read_noise=0.003)
     est = estimate_motion(s.events, s.exposure)
     assert 1.05 < est.confidence < 1.1, est.confidence  # the case this test is about
