@@ -18,7 +18,7 @@ import numpy as np
 from .edi import check_blurry
 from .events import EventStream, Exposure
 
-__all__ = ["FusionInputs", "fusion_inputs"]
+__all__ = ["FusionInputs", "fusion_inputs", "fusion_inputs_from_bins"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,3 +89,30 @@ def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, t
     return FusionInputs(b, edi.astype(np.float32), frames.astype(np.float32),
                         res.frames.astype(np.float32), weight.astype(np.float32), dlog,
                         prep, res.notes)
+
+
+def fusion_inputs_from_bins(blurry: np.ndarray, bins: np.ndarray, trmd, n: int,
+                            prepared=None) -> FusionInputs:
+    """What the network reads for one exposure given as binned counts, which hold no event
+    times to find a motion in: the motion method's frames are its fallback, EDI's, with a
+    weight of 0 (as the network saw them in training wherever the guard fell back).
+
+    Args:
+        blurry: (H, W[, 3]) float32 [0, 1], checked; bins: (M, H, W) signed counts of M equal
+            bins spanning the exposure, checked.
+        trmd: a :class:`~trmd_cli.methods.TrmdMethod` (its c is the c of both).
+        n: 2N+1 instants; must be the weights' N.
+        prepared: the exposure already settled by ``trmd.prepare`` (None: settled here).
+    """
+    from .methods import bin_grid, bins_for
+    from .voxel import scer_from_bins
+
+    prep = trmd.prepare(blurry, bins) if prepared is None else prepared
+    edi = prep.model.latent(blurry, bin_grid(n), prep.contrast).astype(np.float32)
+    frames = trmd.bin_frames(blurry, bins, prep).astype(np.float32)
+    h, w = blurry.shape[:2]
+    dlog = np.zeros((2 * n + 1, h, w), np.float32)
+    dlog[[i for i in range(2 * n + 1) if i != n]] = prep.contrast * scer_from_bins(
+        bins_for(bins, n))
+    return FusionInputs(blurry, edi, frames, edi, np.zeros((2 * n + 1, h, w), np.float32),
+                        dlog, prep)
