@@ -19,7 +19,7 @@ import signal
 import threading
 from collections.abc import Iterator
 
-__all__ = ["Terminated", "handled", "raise_if_received", "deferred"]
+__all__ = ["Terminated", "handled", "raise_if_received", "deferred", "recorded_only"]
 
 
 class Terminated(KeyboardInterrupt):
@@ -34,10 +34,33 @@ def _exception(signum: int) -> KeyboardInterrupt:
     return Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
 
+#: > 0 while :func:`recorded_only` is active: the handlers record, and do not raise
+_holding: list[int] = [0]
+
+
 def _on_signal(signum, frame) -> None:
     if not _received:
         _received.append(signum)
+    if _holding[0]:
+        return
     raise _exception(signum)
+
+
+@contextlib.contextmanager
+def recorded_only() -> Iterator[None]:
+    """While active, a signal is only recorded (:func:`raise_if_received` raises it).
+
+    For code that C calls back into at moments no Python code chooses: HDF5 calls a file
+    object's ``seek`` and ``write`` even when h5py frees an object, and a KeyboardInterrupt
+    raised there (on the callback's first line, before any ``try``) made h5py die with SIGSEGV.
+    Blocking the signals cannot prevent it: the kernel hands a process's signal to any thread
+    that does not block it (a pool's, a progress bar's), and Python then runs the handler in
+    the main thread whatever that thread blocks."""
+    _holding[0] += 1
+    try:
+        yield
+    finally:
+        _holding[0] -= 1
 
 
 def raise_if_received() -> None:

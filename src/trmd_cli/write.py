@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import InputError, OutputExistsError, TrmdError, WriteError
-from .signals import deferred, raise_if_received
+from .signals import deferred, raise_if_received, recorded_only
 
 if TYPE_CHECKING:
     from .deblur import FrameResult
@@ -757,8 +757,13 @@ class H5Writer:
         self.width, self.height = int(width), int(height)
         self._f = None
         self._file: _HDF5File | None = None
+        self._quiet = None
         self._ctx = atomic_path(self.path, suffix=".h5")
         self._tmp = self._ctx.__enter__()
+        # while HDF5 holds the file, Ctrl-C and kill are raised between h5py calls only
+        # (:func:`~trmd_cli.signals.recorded_only`; :meth:`_guard` raises them)
+        self._quiet = recorded_only()
+        self._quiet.__enter__()
         try:
             with self._guard():
                 self._file = _HDF5File(self._tmp)
@@ -771,6 +776,7 @@ class H5Writer:
                 for key, dt in (("x", "u2"), ("y", "u2"), ("t", "i8"), ("p", "i1")):
                     ev.create_dataset(key, (0,), dtype=dt, maxshape=(None,), chunks=(1 << 16,),
                                       compression=compression)
+                del ev
         except BaseException as e:
             self._abandon(e)
             raise
@@ -779,7 +785,8 @@ class H5Writer:
 
     @contextlib.contextmanager
     def _guard(self) -> Iterator[None]:
-        """Run h5py calls; raise what the file met inside them (see :class:`_HDF5File`)."""
+        """Run h5py calls; raise what the file met inside them (see :class:`_HDF5File`), then
+        a Ctrl-C or ``kill`` received meanwhile."""
         try:
             yield
         except BaseException:
@@ -788,6 +795,7 @@ class H5Writer:
             raise
         if self._file is not None and self._file.failure is not None:
             self._raise_failure()
+        raise_if_received()
 
     def _raise_failure(self):
         e = self._file.failure
@@ -813,6 +821,7 @@ class H5Writer:
                 ds = ev[key]
                 ds.resize((n0 + len(stream),))
                 ds[n0:] = getattr(stream, key)
+            del ev, ds  # freed inside the guard (see :meth:`_guard`)
         self._last_t = int(stream.t[-1])
 
     def add_frame(self, blurry: np.ndarray, exposure, sharp: np.ndarray | None = None,
@@ -882,6 +891,7 @@ class H5Writer:
             g = self._f.create_group("windows")
             g.create_dataset("start_us", data=starts)
             g.create_dataset("end_us", data=ends)
+            del g
 
     def close(self, ok: bool = True) -> None:
         if self._f is None:
@@ -891,12 +901,13 @@ class H5Writer:
             return
         try:
             with self._guard():
-                f, self._f = self._f, None
+                f, self._f, self._frames = self._f, None, None
                 f.close()
                 self._file.close()
         except BaseException as e:
             self._abandon(e)
             raise
+        self._release()
         self._ctx.__exit__(None, None, None)
 
     def _abandon(self, exc: BaseException) -> None:
@@ -905,6 +916,7 @@ class H5Writer:
         the caller raises its own)."""
         try:
             if self._f is not None:
+                self._frames = None
                 self._f.close()
         except BaseException:  # noqa: BLE001 - already failing
             pass
@@ -915,6 +927,13 @@ class H5Writer:
                     self._file.close()
             with contextlib.suppress(BaseException):
                 self._ctx.__exit__(type(exc), exc, None)
+            self._release()
+
+    def _release(self) -> None:
+        """HDF5 is done with the file: signals raise where they land again."""
+        if self._quiet is not None:
+            quiet, self._quiet = self._quiet, None
+            quiet.__exit__(None, None, None)
 
     def __enter__(self) -> "H5Writer":
         return self

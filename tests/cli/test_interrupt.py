@@ -10,10 +10,12 @@ places cover the writers whose work is too quick to catch from outside.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import h5py
@@ -71,6 +73,28 @@ def holds_open(pid: int, path: Path) -> bool:
                 return True
         except OSError:
             continue
+    return False
+
+
+def group_alive(pgid: int, within: float) -> bool:
+    """Whether process group ``pgid`` still has a running process (not a zombie, which an
+    init that does not reap would keep) after ``within`` seconds."""
+
+    def running() -> bool:
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[2]) == pgid and fields[0] != "Z":
+                return True
+        return False
+
+    deadline = time.monotonic() + within
+    while running():
+        if time.monotonic() > deadline:
+            return True
+        time.sleep(0.1)
     return False
 
 
@@ -264,3 +288,39 @@ def test_an_interrupt_lost_in_a_finaliser_reaches_the_main_thread_after_the_hook
         for _ in range(200):
             time.sleep(0.01)
     assert returned
+
+
+@pytest.mark.parametrize("sig,code,word", [(signal.SIGINT, 130, "interrupted"),
+                                           (signal.SIGTERM, 143, "terminated")])
+def test_training_set_interrupted_while_its_workers_simulate(tmp_path, sig, code, word):
+    """`simulate --training-set --workers 2`, signalled as a terminal does (the whole group,
+    workers included) once samples are being written: one line, the exit code, no temporary
+    file, no worker left. Before, a KeyboardInterrupt landed in HDF5's calls into the file
+    object (SIGSEGV, or exit 134) or in a worker sending a sample (the parent then waited for
+    ever), and the temporary file stayed."""
+    from tests.helpers.data import texture
+    from trmd_cli.write import write_image
+
+    images = tmp_path / "images"
+    images.mkdir()
+    write_image(images / "a.png", texture(120, 160, seed=1))
+    out = tmp_path / "train.h5"
+    proc = launch("simulate", str(images), "--training-set", "-o", str(out), "--count", "100000",
+                  "--crop", "64", "--workers", "2", new_session=True)
+
+    def writing() -> bool:
+        left = temps(tmp_path)
+        return bool(left) and (tmp_path / left[0]).stat().st_size > 100_000
+
+    try:
+        wait_until(proc, writing, "samples were being written")
+        os.killpg(proc.pid, sig)
+        err = finish(proc, timeout=60)
+        lingering = group_alive(proc.pid, within=10.0)  # the workers' last moments
+    finally:  # a run that did not stop must not go on simulating its 100,000 samples
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == code, err
+    assert word in one_line(err)
+    assert temps(tmp_path) == [] and not out.exists()
+    assert not lingering, "a process of the run outlived it by 10 s"

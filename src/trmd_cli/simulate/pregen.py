@@ -12,14 +12,15 @@ and the root attribute ``simulator`` the generator settings as JSON.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, TrmdError
 from ..events import EventStream
+from ..signals import raise_if_received
 from ..write import H5Writer, check_output
 from .sample import Sample
 
@@ -28,18 +29,77 @@ __all__ = ["pregenerate", "GAP_US"]
 #: time between consecutive samples on the file's timeline, µs
 GAP_US = 10_000
 
-_WORKER_DS = None
 
 
-def _init_worker(kwargs: dict) -> None:
-    global _WORKER_DS
+def _worker(kwargs: dict, first: int, step: int, count: int, conn) -> None:
+    """A simulating process: samples ``first, first + step, …`` sent in order down ``conn``
+    (an exception in place of the sample that raised it)."""
+    import signal
+
+    # Ctrl-C is the parent's to handle (a terminal sends it to the whole group); it stops
+    # the workers. First, before the seconds of importing torch.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     from .dataset import SimulatedDataset
 
-    _WORKER_DS = SimulatedDataset(**kwargs)
+    ds = SimulatedDataset(**kwargs)
+    for i in range(first, count, step):
+        try:
+            item = ds.sample(i)
+        except Exception as e:  # noqa: BLE001 - raised again in the parent
+            conn.send(e)
+            return
+        conn.send(item)
 
 
-def _work(i: int) -> Sample:
-    return _WORKER_DS.sample(i)  # type: ignore[union-attr]
+class _Workers:
+    """``workers`` processes simulating the samples in turn, each with a pipe of its own.
+
+    Not a ``multiprocessing.Pool``: its workers share the queues' locks and one results pipe,
+    so one killed while it sent a sample (a ``kill`` of the whole group) left a lock held or
+    half a message in the pipe, and the pool's own shutdown then waited for ever. Here a
+    worker's death is one pipe's EOF, and stopping is SIGKILL."""
+
+    def __init__(self, kwargs: dict, workers: int, count: int) -> None:
+        import multiprocessing as mp
+
+        # spawn, not fork: forking a process whose torch thread pool runs can deadlock
+        ctx = mp.get_context("spawn")
+        self.count, self._procs, self._conns = count, [], []
+        for k in range(workers):
+            recv, send = ctx.Pipe(duplex=False)
+            proc = ctx.Process(target=_worker, args=(kwargs, k, workers, count, send),
+                               daemon=True)
+            proc.start()
+            send.close()  # the worker's end: its death is then this pipe's EOF
+            self._procs.append(proc)
+            self._conns.append(recv)
+
+    def __iter__(self) -> Iterator[Sample]:
+        for i in range(self.count):
+            k = i % len(self._conns)
+            conn = self._conns[k]
+            # while the HDF5 writer is open a signal is only recorded
+            # (:func:`~trmd_cli.signals.recorded_only`): raised here within half a second
+            while not conn.poll(0.5):
+                raise_if_received()
+            try:
+                item = conn.recv()
+            except (EOFError, OSError):  # (OSError: it died in the middle of a sample)
+                raise_if_received()
+                self._procs[k].join(5)
+                raise TrmdError(f"simulating worker {k + 1} ended without its sample "
+                                f"(exit code {self._procs[k].exitcode})",
+                                hint="out of memory? try fewer --workers") from None
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+
+    def stop(self) -> None:
+        for proc in self._procs:
+            proc.kill()
+        for proc, conn in zip(self._procs, self._conns, strict=True):
+            proc.join()
+            conn.close()
 
 
 def pregenerate(
@@ -87,15 +147,8 @@ def pregenerate(
         "zoom": ds.zoom, "max_px_per_step": ds.max_px_per_step,
         "images": [str(p) if not isinstance(p, np.ndarray) else "<array>" for p in images],
     }
-    pool = None
-    if workers > 1:
-        import multiprocessing as mp
-
-        # spawn, not fork: forking a process whose torch thread pool runs can deadlock
-        pool = mp.get_context("spawn").Pool(workers, _init_worker, (kwargs,))
-        samples = pool.imap(_work, range(count), chunksize=4)
-    else:
-        samples = (ds.sample(i) for i in range(count))
+    pool = _Workers(kwargs, workers, count) if workers > 1 else None
+    samples = iter(pool) if pool is not None else (ds.sample(i) for i in range(count))
     try:
         with H5Writer(out_path, ds.crop, ds.crop, compression=compression,
                       attrs={"simulator": json.dumps(settings)}) as w:
@@ -109,7 +162,7 @@ def pregenerate(
                     progress(i + 1, count)
     finally:
         if pool is not None:
-            pool.terminate()
+            pool.stop()
     return out_path
 
 
