@@ -776,7 +776,6 @@ class H5Writer:
                 for key, dt in (("x", "u2"), ("y", "u2"), ("t", "i8"), ("p", "i1")):
                     ev.create_dataset(key, (0,), dtype=dt, maxshape=(None,), chunks=(1 << 16,),
                                       compression=compression)
-                del ev
         except BaseException as e:
             self._abandon(e)
             raise
@@ -821,7 +820,6 @@ class H5Writer:
                 ds = ev[key]
                 ds.resize((n0 + len(stream),))
                 ds[n0:] = getattr(stream, key)
-            del ev, ds  # freed inside the guard (see :meth:`_guard`)
         self._last_t = int(stream.t[-1])
 
     def add_frame(self, blurry: np.ndarray, exposure, sharp: np.ndarray | None = None,
@@ -891,7 +889,6 @@ class H5Writer:
             g = self._f.create_group("windows")
             g.create_dataset("start_us", data=starts)
             g.create_dataset("end_us", data=ends)
-            del g
 
     def close(self, ok: bool = True) -> None:
         if self._f is None:
@@ -901,7 +898,7 @@ class H5Writer:
             return
         try:
             with self._guard():
-                f, self._f, self._frames = self._f, None, None
+                f, self._f = self._f, None
                 f.close()
                 self._file.close()
         except BaseException as e:
@@ -916,7 +913,6 @@ class H5Writer:
         the caller raises its own)."""
         try:
             if self._f is not None:
-                self._frames = None
                 self._f.close()
         except BaseException:  # noqa: BLE001 - already failing
             pass
