@@ -812,8 +812,6 @@ class FusedMethod(_RemovesPattern):
         (18 bins: 31.18 → 31.14 dB; 6 bins: 31.08 → 30.82) and raised the sequence by
         0.8–0.9 dB over TRMD's frames. Beyond the network's sensors (c above
         :data:`~trmd_cli.models.fusion.MAX_CONTRAST`): TRMD's frames."""
-        from dataclasses import replace
-
         from .fusion import fusion_inputs_from_bins
         from .models.fusion import MAX_CONTRAST
 
@@ -823,14 +821,14 @@ class FusedMethod(_RemovesPattern):
         prep = self.prepare(b, bins)
         said = "binned events have no event times to estimate the motion from"
         if prep.contrast > MAX_CONTRAST:
-            est = self._trmd.from_bins(b, bins, fractions)
-            return replace(est, notes=(*est.notes, f"{said}, and c = {prep.contrast:.2f} is "
-                                       f"beyond the fusion network's sensors (c ≤ "
-                                       f"{MAX_CONTRAST}): TRMD's frames"))
-        frames = self._fuse(fusion_inputs_from_bins(b, bins, self._trmd, self.n, prep))
+            frames = _without_ghosts(self._trmd.bin_frames(b, bins, prep), prep, self.n)
+            note = (f"{said}, and c = {prep.contrast:.2f} is beyond the fusion network's "
+                    f"sensors (c ≤ {MAX_CONTRAST}): TRMD's frames")
+        else:
+            frames = self._fuse(fusion_inputs_from_bins(b, bins, self._trmd, self.n, prep))
+            note = f"{said}: fused with EDI's frames in its place"
         return Estimate(frames, grid, prep.contrast, prep.estimated, prep.reliable,
-                        contrast_note=prep.note,
-                        notes=(f"{said}: fused with EDI's frames in its place",))
+                        contrast_note=prep.note, notes=(note,))
 
 
 #: every deblurring method's class by name: the one place a method is added. A class has
