@@ -15,7 +15,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import h5py
@@ -23,7 +22,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from tests.helpers.procs import PREVIOUS, finish, launch, temps, wait_until
+from tests.helpers.procs import PREVIOUS, finish, group_gone, launch, temps, wait_until
 from trmd_cli.cli.app import app
 from trmd_cli.events import make_stream
 from trmd_cli.write import sweep_stale_temps, write_events_npz, write_h5
@@ -73,28 +72,6 @@ def holds_open(pid: int, path: Path) -> bool:
                 return True
         except OSError:
             continue
-    return False
-
-
-def group_alive(pgid: int, within: float) -> bool:
-    """Whether process group ``pgid`` still has a running process (not a zombie, which an
-    init that does not reap would keep) after ``within`` seconds."""
-
-    def running() -> bool:
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                fields = stat.read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[2]) == pgid and fields[0] != "Z":
-                return True
-        return False
-
-    deadline = time.monotonic() + within
-    while running():
-        if time.monotonic() > deadline:
-            return True
-        time.sleep(0.1)
     return False
 
 
@@ -316,11 +293,11 @@ def test_training_set_interrupted_while_its_workers_simulate(tmp_path, sig, code
         wait_until(proc, writing, "samples were being written")
         os.killpg(proc.pid, sig)
         err = finish(proc, timeout=60)
-        lingering = group_alive(proc.pid, within=10.0)  # the workers' last moments
+        gone = group_gone(proc.pid)  # (the workers' last moments may outlast the parent)
     finally:  # a run that did not stop must not go on simulating its 100,000 samples
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == code, err
     assert word in one_line(err)
     assert temps(tmp_path) == [] and not out.exists()
-    assert not lingering, "a process of the run outlived it by 10 s"
+    assert gone, "a process of the run outlived it by 10 s"

@@ -8,7 +8,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -192,18 +191,6 @@ def test_resume_completes_a_partial_run(recs, alone, tmp_path):
     no_stage(out)
 
 
-def group_gone(pgid: int, timeout: float = 10.0) -> bool:
-    """No process is left in the process group ``pgid`` (within ``timeout`` s)."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        try:
-            os.killpg(pgid, 0)
-        except ProcessLookupError:
-            return True
-        time.sleep(0.05)
-    return False
-
-
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="signals as on Linux")
 def test_ctrl_c_then_resume(tmp_path):
     """Ctrl-C (to the whole process group, as a terminal sends it) in the middle of a --jobs 2
@@ -211,7 +198,7 @@ def test_ctrl_c_then_resume(tmp_path):
     ends with the one-process output."""
     import signal
 
-    from tests.helpers.procs import finish, launch, wait_until
+    from tests.helpers.procs import finish, group_gone, launch, wait_until
 
     rec = write_recording(tmp_path / "long.h5", 200)
     out = tmp_path / "out"

@@ -53,3 +53,31 @@ def wait_until(proc: subprocess.Popen, ready, what: str, timeout: float = 90.0) 
             proc.kill()
             pytest.fail(f"timed out waiting for {what}")
         time.sleep(0.002)
+
+
+def group_gone(pgid: int, timeout: float = 10.0) -> bool:
+    """No process of the process group ``pgid`` runs (within ``timeout`` s). A zombie counts as
+    gone: an init that does not reap keeps the exited ones."""
+
+    def running() -> bool:
+        if not Path("/proc").is_dir():
+            try:
+                os.killpg(pgid, 0)
+            except ProcessLookupError:
+                return False
+            return True
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[2]) == pgid and fields[0] not in "ZX":
+                return True
+        return False
+
+    end = time.monotonic() + timeout
+    while running():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.05)
+    return True

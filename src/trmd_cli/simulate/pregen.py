@@ -30,7 +30,6 @@ __all__ = ["pregenerate", "GAP_US"]
 GAP_US = 10_000
 
 
-
 def _worker(kwargs: dict, first: int, step: int, count: int, conn) -> None:
     """A simulating process: samples ``first, first + step, …`` sent in order down ``conn``
     (an exception in place of the sample that raised it)."""
