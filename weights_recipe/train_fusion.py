@@ -126,6 +126,11 @@ def main() -> None:
           f"{sum(p.numel() for p in model.parameters())} parameters", flush=True)
     base = score(None, data, held)
     print(f"held out, motion method: {base[0]:.2f} / {base[1]:.2f} dB", flush=True)
+    if args.init:
+        first = score(model.eval(), data, held)
+        model.train()
+        print(f"held out, the weights it starts from: {first[0]:.2f} / {first[1]:.2f} dB",
+              flush=True)
     meta = {"trained_on": args.data.name, "samples": int(len(train)), "crop": args.crop,
             "batch": args.batch, "lr": args.lr}
     t0 = time.time()

@@ -810,20 +810,20 @@ class FusedMethod(_RemovesPattern):
         (:func:`~trmd_cli.fusion.fusion_inputs_from_bins`), as it saw wherever the guard fell
         back in training. On the pinned set binned from its events this kept the middle frame
         (18 bins: 31.18 → 31.14 dB; 6 bins: 31.08 → 30.82) and raised the sequence by
-        0.8–0.9 dB over TRMD's frames. Beyond the network's sensors (c above
-        :data:`~trmd_cli.models.fusion.MAX_CONTRAST`): TRMD's frames."""
+        0.8–0.9 dB over TRMD's frames. Beyond the c it saw such inputs at (above
+        :data:`~trmd_cli.models.fusion.MAX_BINNED_CONTRAST`): TRMD's frames."""
         from .fusion import fusion_inputs_from_bins
-        from .models.fusion import MAX_CONTRAST
+        from .models.fusion import MAX_BINNED_CONTRAST
 
         bins = _check_bins(bins)
         b = pattern_free(self.pattern, check_blurry(blurry, bins.shape[2], bins.shape[1]))
         grid = own_bin_frames(self.n, fractions, "the fused method")
         prep = self.prepare(b, bins)
         said = "binned events have no event times to estimate the motion from"
-        if prep.contrast > MAX_CONTRAST:
+        if prep.contrast > MAX_BINNED_CONTRAST:
             frames = _without_ghosts(self._trmd.bin_frames(b, bins, prep), prep, self.n)
             note = (f"{said}, and c = {prep.contrast:.2f} is beyond the fusion network's "
-                    f"sensors (c ≤ {MAX_CONTRAST}): TRMD's frames")
+                    f"sensors (c ≤ {MAX_BINNED_CONTRAST} on binned data): TRMD's frames")
         else:
             frames = self._fuse(fusion_inputs_from_bins(b, bins, self._trmd, self.n, prep))
             note = f"{said}: fused with EDI's frames in its place"
