@@ -216,10 +216,11 @@ def test_shipped_fusion_keeps_what_a_still_camera_saw(mover):
 def test_beyond_its_sensors_the_network_is_not_used(tmp_path):
     """A network that changes every frame: at c = 0.2 the fused frames differ from the motion
     method's; at c = 0.8 (beyond MAX_CONTRAST) they are the motion method's, with a note.
-    Binned data (EDI's frames in the motion input, as wherever the motion method fell back)
-    is fused up to MAX_BINNED_CONTRAST: at c = 0.8 the frames are the network's, at 1.2
-    TRMD's."""
-    from trmd_cli.models.fusion import MAX_BINNED_CONTRAST, MAX_CONTRAST
+    Where the network's motion input is EDI's frames at a weight of 0 throughout (a still
+    camera, on which the motion method falls back whole; binned data) it is used up to
+    MAX_FALLBACK_CONTRAST: at c = 0.8 the frames are the network's, at 1.2 the motion
+    method's (binned: TRMD's)."""
+    from trmd_cli.models.fusion import MAX_CONTRAST, MAX_FALLBACK_CONTRAST
 
     s = _sample()
     net = FusionNet(8)
@@ -237,8 +238,24 @@ def test_beyond_its_sensors_the_network_is_not_used(tmp_path):
     alone = MotionMethod(3, contrast=c)(s.blurry, s.events, s.exposure)
     np.testing.assert_allclose(beyond.frames, alone.frames, atol=1e-6)
     assert any("beyond the fusion network" in note for note in beyond.notes)
+    # a still camera: the motion method falls back to EDI on the whole frame, the network's
+    # input is the one it saw at any c, and it is used up to MAX_FALLBACK_CONTRAST
+    still = make_sample(texture(300, 400, seed=3), size=(96, 72),
+                        rng=np.random.default_rng(3), motion=MotionRanges.static(),
+                        sensor=SensorConfig.clean(0.2), read_noise=0.003)
+    for c_still, used in ((c, True), (1.2, False)):
+        got = FusedMethod(3, contrast=c_still, fusion_weights=path, threads=1)(
+            still.blurry, still.events, still.exposure)
+        alone = MotionMethod(3, contrast=c_still)(still.blurry, still.events, still.exposure)
+        assert any("used EDI" in note for note in alone.notes)
+        if used:
+            assert np.abs(got.frames - alone.frames).mean() > 0.04
+            assert not got.notes
+        else:
+            np.testing.assert_allclose(got.frames, alone.frames, atol=1e-6)
+            assert any("beyond the fusion network" in note for note in got.notes)
     bins = np.random.default_rng(1).integers(-2, 3, (6, 72, 96)).astype(np.float32)
-    assert c <= MAX_BINNED_CONTRAST < 1.2
+    assert c <= MAX_FALLBACK_CONTRAST < 1.2
     for c_bins, used in ((c, True), (1.2, False)):
         got = FusedMethod(3, contrast=c_bins, fusion_weights=path, threads=1).from_bins(
             s.blurry, bins)

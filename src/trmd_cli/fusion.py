@@ -53,7 +53,8 @@ class FusionInputs:
 
 
 def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, trmd,
-                  n: int, prepared=None, noise: float | None = None) -> FusionInputs:
+                  n: int, prepared=None, noise: float | None = None,
+                  motion=None) -> FusionInputs:
     """Run EDI, TRMD and the motion method on one exposure as ``trmd deblur`` runs each.
 
     Args:
@@ -64,6 +65,8 @@ def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, t
         prepared: the exposure already settled by ``trmd.prepare`` (None: settled here).
         noise: the σ the deconvolution is weighed by when ``blurry`` had its fixed pattern
             removed (see :func:`~trmd_cli.methods.motion_frames`).
+        motion: ``(edi, res)`` of :func:`~trmd_cli.methods.motion_frames` at the 2N+1
+            instants with ``prepared``, when already run (then only TRMD runs here).
     """
     from .methods import motion_frames
     from .threads import beside
@@ -76,7 +79,8 @@ def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, t
     # 1.33 s per 346×260 frame on 2 cores, the same frames (one thread per process: in turn)
     later = beside(trmd.grid_frames, b, events, exposure, prep, lane="network")
     fr = np.arange(2 * n + 1) / (2 * n)
-    edi, res = motion_frames(b, events, exposure, fr, prep, noise=noise)
+    edi, res = motion_frames(b, events, exposure, fr, prep, noise=noise) if motion is None \
+        else motion
     frames = later.result()
     h, w = b.shape[:2]
     weight = np.zeros((2 * n + 1, h, w), np.float32) if res.weights is None else res.weights

@@ -755,7 +755,7 @@ class FusedMethod(_RemovesPattern):
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
         from .fusion import fusion_inputs
-        from .models.fusion import MAX_CONTRAST
+        from .models.fusion import MAX_CONTRAST, MAX_FALLBACK_CONTRAST
 
         recorded = check_blurry(blurry, events.width, events.height)
         b = pattern_free(self.pattern, recorded)
@@ -766,11 +766,19 @@ class FusedMethod(_RemovesPattern):
         # motion is not used the network leans on TRMD, so they are not passed on
         notes: tuple[str, ...] = ()
         if prep.contrast > MAX_CONTRAST:
-            # the network is not run, so neither is TRMD, which only it reads
             fr = np.arange(2 * self.n + 1) / (2 * self.n)
-            frames = motion_frames(b, events, exposure, fr, prep, noise=noise)[1].frames
-            notes = (f"c = {prep.contrast:.2f} is beyond the fusion network's sensors "
-                     f"(c ≤ {MAX_CONTRAST}): the motion method's frames",)
+            motion = motion_frames(b, events, exposure, fr, prep, noise=noise)
+            if motion[1].weights is None and prep.contrast <= MAX_FALLBACK_CONTRAST:
+                # the motion method fell back to EDI on the whole frame: the network's input
+                # is then the one it saw at any c on the still cameras of its training set
+                frames = self._fuse(fusion_inputs(b, events, exposure, self._trmd, self.n,
+                                                  prep, noise, motion))
+            else:
+                # the network is not run, so neither is TRMD, which only it reads
+                frames = motion[1].frames
+                notes = (f"c = {prep.contrast:.2f} is beyond the fusion network's sensors "
+                         f"(c ≤ {MAX_CONTRAST} where the motion method's frames are used): "
+                         "the motion method's frames",)
         else:
             frames = self._fuse(fusion_inputs(b, events, exposure, self._trmd, self.n, prep,
                                               noise))
@@ -811,19 +819,19 @@ class FusedMethod(_RemovesPattern):
         back in training. On the pinned set binned from its events this kept the middle frame
         (18 bins: 31.18 → 31.14 dB; 6 bins: 31.08 → 30.82) and raised the sequence by
         0.8–0.9 dB over TRMD's frames. Beyond the c it saw such inputs at (above
-        :data:`~trmd_cli.models.fusion.MAX_BINNED_CONTRAST`): TRMD's frames."""
+        :data:`~trmd_cli.models.fusion.MAX_FALLBACK_CONTRAST`): TRMD's frames."""
         from .fusion import fusion_inputs_from_bins
-        from .models.fusion import MAX_BINNED_CONTRAST
+        from .models.fusion import MAX_FALLBACK_CONTRAST
 
         bins = _check_bins(bins)
         b = pattern_free(self.pattern, check_blurry(blurry, bins.shape[2], bins.shape[1]))
         grid = own_bin_frames(self.n, fractions, "the fused method")
         prep = self.prepare(b, bins)
         said = "binned events have no event times to estimate the motion from"
-        if prep.contrast > MAX_BINNED_CONTRAST:
+        if prep.contrast > MAX_FALLBACK_CONTRAST:
             frames = _without_ghosts(self._trmd.bin_frames(b, bins, prep), prep, self.n)
             note = (f"{said}, and c = {prep.contrast:.2f} is beyond the fusion network's "
-                    f"sensors (c ≤ {MAX_BINNED_CONTRAST} on binned data): TRMD's frames")
+                    f"sensors (c ≤ {MAX_FALLBACK_CONTRAST} on binned data): TRMD's frames")
         else:
             frames = self._fuse(fusion_inputs_from_bins(b, bins, self._trmd, self.n, prep))
             note = f"{said}: fused with EDI's frames in its place"

@@ -26,7 +26,7 @@ from torch import nn
 
 from ..errors import WeightsError
 
-__all__ = ["FusionNet", "FUSION_FORMAT", "DEFAULT_FUSION", "MAX_CONTRAST", "MAX_BINNED_CONTRAST",
+__all__ = ["FusionNet", "FUSION_FORMAT", "DEFAULT_FUSION", "MAX_CONTRAST", "MAX_FALLBACK_CONTRAST",
            "default_fusion_path", "fusion_planes", "save_fusion", "load_fusion", "is_fusion_file",
            "describe_fusion"]
 
@@ -43,14 +43,14 @@ EVENT_CLIP = 3.0
 #: out of its depth — on a c = 0.7 set it fell 1.1 dB below the motion method it corrects
 #: — and the fused method gives the motion method's frames
 MAX_CONTRAST = 0.65
-#: the largest c the network is used at on binned data, where its motion input is EDI's
-#: frames with a weight of 0 throughout: what it saw wherever the motion method fell back
-#: whole, as on the still camera's samples of its training set, whose sensors reach c = 0.8
+#: the largest c the network is used at where its motion input is EDI's frames with a
+#: weight of 0 throughout (binned data; a frame the motion method fell back on whole): what
+#: it saw on the still camera's samples of its training set, whose sensors reach c = 0.8
 #: and whose settled c spans the threshold search's whole range (to its bound, 1.0). On
 #: c = 0.75 binned frames with ground truth, c settled per frame at 0.95 in the median, its
 #: frames were above TRMD's (PSNR middle / sequence 29.87 / 28.09 against 29.80 / 27.23 dB;
 #: ``bench/bench_still_camera.py``)
-MAX_BINNED_CONTRAST = 1.0
+MAX_FALLBACK_CONTRAST = 1.0
 
 
 def default_fusion_path() -> Path:
