@@ -327,12 +327,16 @@ def _stencil_rows(motion, first: int, stop: int, width: int, height: int,
         x0, y0 = np.floor(xc), np.floor(yc)
         fx, fy = (xc - x0) / nj, yc - y0
         gx, gy = 1.0 / nj - fx, 1.0 - fy
-        i0 = y0 * wp + x0
-        inside = bool(((x0 >= 0) & (x0 < wp - 1) & (y0 >= 0) & (y0 < hp - 1)).all())
-        for k, (off, wt) in enumerate(((0, gx * gy), (1, fx * gy), (wp, gx * fy),
-                                       (wp + 1, fx * fy))):
-            cols[j, k] = i0 + off if inside else 0
-            vals[j, k] = wt
+        inside = bool(x0.min() >= 0 and x0.max() < wp - 1 and y0.min() >= 0
+                      and y0.max() < hp - 1)
+        # the products in float64, rounded once into the table; the indices in int32 from the
+        # start (exact: the canvas has far fewer than 2³¹ pixels)
+        i0 = (y0 * wp + x0).astype(np.int32) if inside else None
+        for k, (off, a, b) in enumerate(((0, gx, gy), (1, fx, gy), (wp, gx, fy),
+                                         (wp + 1, fx, fy))):
+            if inside:
+                np.add(i0, off, out=cols[j, k])
+            np.multiply(a, b, out=vals[j, k], casting="unsafe")
         if not inside:
             # a tap is kept where it lands on the canvas (rare: the motion leaves its margin)
             xi, yi = x0.astype(np.int64), y0.astype(np.int64)
