@@ -13,7 +13,7 @@ at work).
 With ``--still-every K`` every K-th sample is instead a still camera (under 1 px of shake)
 with objects moving on their own in most: the scene a camera on a tripod sees, where the
 motion method finds no global motion and falls back to EDI. A network that never saw one
-smoothed the texture B holds sharp (−3 to −7 dB against EDI's middle frame on such frames).
+smoothed the texture B holds sharp (3 dB below EDI on a still scene, ``tests/test_fusion.py``).
 Their sensors alternate between the DAVIS-like default and one drawn with a threshold of up
 to 0.8.
 

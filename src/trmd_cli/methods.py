@@ -767,15 +767,15 @@ class FusedMethod(_RemovesPattern):
         notes: tuple[str, ...] = ()
         if prep.contrast > MAX_CONTRAST:
             fr = np.arange(2 * self.n + 1) / (2 * self.n)
-            motion = motion_frames(b, events, exposure, fr, prep, noise=noise)
-            if motion[1].weights is None and prep.contrast <= MAX_FALLBACK_CONTRAST:
+            edi, res = motion_frames(b, events, exposure, fr, prep, noise=noise)
+            if res.weights is None and prep.contrast <= MAX_FALLBACK_CONTRAST:
                 # the motion method fell back to EDI on the whole frame: the network's input
                 # is then the one it saw at any c on the still cameras of its training set
                 frames = self._fuse(fusion_inputs(b, events, exposure, self._trmd, self.n,
-                                                  prep, noise, motion))
+                                                  prep, noise, (edi, res)))
             else:
                 # the network is not run, so neither is TRMD, which only it reads
-                frames = motion[1].frames
+                frames = res.frames
                 notes = (f"c = {prep.contrast:.2f} is beyond the fusion network's sensors "
                          f"(c ≤ {MAX_CONTRAST} where the motion method's frames are used): "
                          "the motion method's frames",)
