@@ -186,8 +186,8 @@ def test_shipped_fusion_keeps_what_a_still_camera_saw(mover):
     and EDI's frames are B there. The motion method finds no global motion and falls back to
     EDI; the network must not smooth what B holds. In the mean over four DAVIS-like samples
     (PSNR near 50 dB where nothing moves) the fused middle frame is within 1 dB of EDI's and
-    the sequence within 0.5 dB. Measured: nothing moving −0.54 / +0.11 dB, one mover +1.70 /
-    +2.48; a network never shown a still camera gave −3.21 / −2.13 and +0.31 / +1.55, the
+    the sequence within 0.5 dB. Measured: nothing moving −0.47 / +0.11 dB, one mover +1.92 /
+    +2.60; a network never shown a still camera gave −3.21 / −2.13 and +0.31 / +1.55, the
     texture smoothed."""
     from trmd_cli.metrics import psnr
 

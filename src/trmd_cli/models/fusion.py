@@ -48,7 +48,7 @@ MAX_CONTRAST = 0.65
 #: it saw on the still camera's samples of its training set, whose sensors reach c = 0.8
 #: and whose settled c spans the threshold search's whole range (to its bound, 1.0). On
 #: c = 0.75 binned frames with ground truth, c settled per frame at 0.95 in the median, its
-#: frames were above TRMD's (PSNR middle / sequence 29.87 / 28.09 against 29.80 / 27.23 dB;
+#: frames were above TRMD's (PSNR middle / sequence 29.90 / 28.15 against 29.80 / 27.23 dB;
 #: ``bench/bench_still_camera.py``)
 MAX_FALLBACK_CONTRAST = 1.0
 
