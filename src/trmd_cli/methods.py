@@ -683,9 +683,10 @@ class MotionMethod(_RemovesPattern):
 
     def from_bins(self, blurry, bins, fractions=None) -> Estimate:
         # (no flag named: deblur's is --method, eval's --methods)
-        raise InputError("the motion method (and fused, which runs it) needs event times to "
-                         "estimate the motion; binned events have none",
-                         hint="use the edi or the trmd method")
+        raise InputError("the motion method needs event times to estimate the motion; binned "
+                         "events have none",
+                         hint="use the fused method (the default: EDI's frames in the motion "
+                              "method's place), edi or trmd")
 
 
 class FusedMethod(_RemovesPattern):

@@ -610,7 +610,7 @@ def test_binned_trmd_with_the_shipped_weights(binned, tmp_path):
 
 
 @pytest.mark.parametrize("case", ["rows", "frames", "fraction", "nan", "size", "dtype",
-                                  "offset", "exposure", "time-unit"])
+                                  "offset", "exposure", "time-unit", "motion"])
 def test_binned_bad_input_one_line_exit_2_nothing_written(binned, tmp_path, case):
     from tests.helpers.bins import write_binned_set, write_bins
 
@@ -646,6 +646,10 @@ def test_binned_bad_input_one_line_exit_2_nothing_written(binned, tmp_path, case
     elif case == "exposure":
         args = ["--exposure", "0", "1"]
         expect = "no event clock: --exposure"
+    elif case == "motion":  # no event times to find a motion in; fused runs without them
+        args = ["--method", "motion"]
+        expect = "the motion method needs event times to estimate the motion; binned events " \
+            "have none — use the fused method"
     else:
         args = ["--time-unit", "ms"]
         expect = "--time-unit does not apply"
