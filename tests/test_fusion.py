@@ -24,6 +24,22 @@ from .helpers.data import texture
 
 needs_weights = pytest.mark.skipif(not default_weights_path().is_file(),
                                    reason="no shipped RE-Net weights")
+needs_fusion = pytest.mark.skipif(
+    not (default_fusion_path().is_file() and default_weights_path().is_file()),
+    reason="no shipped fusion weights")
+
+
+def _margins(frames: np.ndarray, other: np.ndarray, sharp: np.ndarray) -> tuple[float, float]:
+    """PSNR of ``frames`` minus that of ``other`` (both clipped to [0, 1]) against the 2N+1
+    ``sharp`` frames, dB: (middle frame, mean over the sequence)."""
+    from trmd_cli.metrics import psnr
+
+    def each(f):
+        return [psnr(np.clip(a, 0, 1), b) for a, b in zip(f, sharp, strict=True)]
+
+    a, b = each(frames), each(other)
+    mid = len(sharp) // 2
+    return a[mid] - b[mid], float(np.mean(a)) - float(np.mean(b))
 
 
 def _sample(seed: int = 3):
@@ -127,59 +143,46 @@ def test_fused_with_an_untrained_network_is_the_motion_method(tmp_path):
         fused.from_bins(s.blurry, bins, np.array([0.5]))
 
 
-@pytest.mark.skipif(not (default_fusion_path().is_file() and default_weights_path().is_file()),
-                    reason="no shipped fusion weights")
+@needs_fusion
 def test_shipped_fusion_beats_the_motion_method_on_clean_samples():
     """Synthetic camera shakes with known ground truth: in the mean over four of them the
     shipped fusion is above the motion method (which it starts from) on the middle frame and
     the sequence. (One sample alone can go either way: over twelve, the network's margin
     ranged from −0.2 to +1.5 dB on the middle frame, +0.4 in the mean.)"""
-    from trmd_cli.metrics import psnr
-
-    def seq(frames, sharp):
-        return float(np.mean([psnr(np.clip(a, 0, 1), b) for a, b in zip(frames, sharp)]))
 
     method = FusedMethod(3, threads=1)  # the weights read once
-    mid, whole = [], []
+    margins = []
     for seed in (2, 3, 4, 5):
         s = _sample(seed=seed)
         fused = method(s.blurry, s.events, s.exposure)
         alone = MotionMethod(3, contrast=fused.contrast)(s.blurry, s.events, s.exposure)
-        mid.append(psnr(np.clip(fused.frames[3], 0, 1), s.sharp[3])
-                   - psnr(np.clip(alone.frames[3], 0, 1), s.sharp[3]))
-        whole.append(seq(fused.frames, s.sharp) - seq(alone.frames, s.sharp))
-    assert np.mean(mid) > 0
-    assert np.mean(whole) > 0
+        margins.append(_margins(fused.frames, alone.frames, s.sharp))
+    mid, whole = np.mean(margins, axis=0)  # over the samples
+    assert mid > 0
+    assert whole > 0
 
 
-@pytest.mark.skipif(not (default_fusion_path().is_file() and default_weights_path().is_file()),
-                    reason="no shipped fusion weights")
+@needs_fusion
 def test_shipped_fusion_beats_trmd_on_binned_samples():
     """The same camera shakes given as 18 bins (no event times, so no motion): the network
     on TRMD's frames and EDI's in the motion method's place is above TRMD's frames in the mean
     over four (measured +0.17…+0.81 dB on the middle frame, +0.51…+0.65 on the sequence)."""
-    from trmd_cli.metrics import psnr
     from trmd_cli.voxel import event_bins
 
-    def seq(frames, sharp):
-        return float(np.mean([psnr(np.clip(a, 0, 1), b) for a, b in zip(frames, sharp)]))
-
     fused, trmd = FusedMethod(3, threads=1), TrmdMethod(3, threads=1, settle_contrast=True)
-    mid, whole = [], []
+    margins = []
     for seed in (2, 3, 4, 5):
         s = _sample(seed=seed)
         bins = event_bins(s.events, s.exposure, 18)
         got, alone = fused.from_bins(s.blurry, bins), trmd.from_bins(s.blurry, bins)
         assert got.contrast == pytest.approx(alone.contrast)
-        mid.append(psnr(np.clip(got.frames[3], 0, 1), s.sharp[3])
-                   - psnr(np.clip(alone.frames[3], 0, 1), s.sharp[3]))
-        whole.append(seq(got.frames, s.sharp) - seq(alone.frames, s.sharp))
-    assert np.mean(mid) > 0
-    assert np.mean(whole) > 0.3
+        margins.append(_margins(got.frames, alone.frames, s.sharp))
+    mid, whole = np.mean(margins, axis=0)  # over the samples
+    assert mid > 0
+    assert whole > 0.3
 
 
-@pytest.mark.skipif(not (default_fusion_path().is_file() and default_weights_path().is_file()),
-                    reason="no shipped fusion weights")
+@needs_fusion
 @pytest.mark.parametrize("mover", [False, True], ids=["still", "one mover"])
 def test_shipped_fusion_keeps_what_a_still_camera_saw(mover):
     """A camera on a tripod (0.3 px of shake): B is sharp wherever nothing moves on its own,
@@ -189,27 +192,21 @@ def test_shipped_fusion_keeps_what_a_still_camera_saw(mover):
     the sequence within 0.5 dB. Measured: nothing moving −0.47 / +0.11 dB, one mover +1.92 /
     +2.60; a network never shown a still camera gave −3.21 / −2.13 and +0.31 / +1.55, the
     texture smoothed."""
-    from trmd_cli.metrics import psnr
-
-    def seq(frames, sharp):
-        return float(np.mean([psnr(np.clip(a, 0, 1), b) for a, b in zip(frames, sharp)]))
-
     still = MotionRanges(translation_px=0.3, rotation_deg=0.0, scale=0.0, perspective=0,
                          curvature=0.2, foreground_prob=1.0 if mover else 0.0, max_layers=1,
                          layer_translation_px=25.0, layer_size=(0.3, 0.5))
     method = FusedMethod(3, threads=1)
-    mid, whole = [], []
+    margins = []
     for seed in (2, 3, 4, 5):
         s = make_sample(texture(300, 400, seed=seed), size=(128, 96),
                         rng=np.random.default_rng(seed), motion=still, sensor=SensorConfig(),
                         read_noise=0.003)
         fused = method(s.blurry, s.events, s.exposure)
         edi = EdiMethod(3, contrast=fused.contrast)(s.blurry, s.events, s.exposure)
-        mid.append(psnr(np.clip(fused.frames[3], 0, 1), s.sharp[3])
-                   - psnr(np.clip(edi.frames[3], 0, 1), s.sharp[3]))
-        whole.append(seq(fused.frames, s.sharp) - seq(edi.frames, s.sharp))
-    assert np.mean(mid) > -1.0
-    assert np.mean(whole) > -0.5
+        margins.append(_margins(fused.frames, edi.frames, s.sharp))
+    mid, whole = np.mean(margins, axis=0)  # over the samples
+    assert mid > -1.0
+    assert whole > -0.5
 
 
 @needs_weights
