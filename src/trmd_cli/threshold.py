@@ -64,6 +64,10 @@ _SIGMA = 1.5
 _EPS = 0.02
 #: fewer events than this per window → no estimate (DEFAULT_CONTRAST is used)
 MIN_EVENTS = 2000
+#: the largest c·|S| (log-intensity change) computed in float32: exp(88.7) is its largest
+#: number, and a pixel whose events sum further (one the hot-pixel test missed, a flicker)
+#: made the energy NaN at a high c; such an exposure is computed in float64
+_FLOAT32_EXP = 80.0
 
 
 @dataclass(frozen=True)
@@ -162,6 +166,8 @@ class ContrastObjective:
                 self._moved_levels = [self.levels[k, m] for k, m in enumerate(moved)]
         else:
             self.levels = (twice / 2).astype(np.float32)
+        #: the largest |S| (events) at an instant: bounds the exponent of every c
+        self._reach = float(np.abs(twice).max()) / 2 if twice.size else 0.0
         self.counts = [_smoothed(c, self.hb, self.wb) for c in counts]
         self.total = float(sum(_block_means(c * c, self._blocks).sum() for c in self.counts))
         self.evaluations = 0
@@ -198,32 +204,30 @@ class ContrastObjective:
     def explained(self, contrast: float) -> float:
         """The part of ``total`` (Σ D² over the blocks) the per-block fits explain at c."""
         self.evaluations += 1
+        ft = np.float64 if contrast * self._reach > _FLOAT32_EXP else np.float32
         if self._lookup:
-            table = np.exp(np.float32(contrast / 2)
-                           * np.arange(self._lo, self._hi + 1, dtype=np.float32))
+            table = np.exp(ft(contrast / 2) * np.arange(self._lo, self._hi + 1, dtype=ft))
         if self._pixels is not None:
             # B / J on the fired pixels (elsewhere J = 1); where S = 0 (every silent pixel,
             # and fired ones between their steps) the latent is that base (exp(0) = 1): its
             # log is computed once, not per instant
-            base_fired = self._blurry_fired / self.model.fired_integral(contrast).astype(
-                np.float32)
+            base_fired = self._blurry_fired / self.model.fired_integral(contrast).astype(ft)
             log_base = self._log_silent.copy()
-            log_base.reshape(-1)[self._pixels] = np.log(base_fired + np.float32(_EPS))
+            log_base.reshape(-1)[self._pixels] = np.log(base_fired + ft(_EPS))
         else:
-            base = self.blurry / self.model.integral(contrast).astype(np.float32)
+            base = self.blurry / self.model.integral(contrast).astype(ft)
         num = 0.0
         for k, d in enumerate(self.counts):
             if self._pixels is not None:
                 log_l = log_base.copy()
                 log_l.reshape(-1)[self._moved_pixels[k]] = np.log(
-                    base_fired[self._moved[k]] * table[self._moved_levels[k]]
-                    + np.float32(_EPS))
+                    base_fired[self._moved[k]] * table[self._moved_levels[k]] + ft(_EPS))
             else:
                 if self._lookup:
                     lat = base * table[self.levels[k]]
                 else:
-                    lat = base * np.exp(np.float32(contrast) * self.levels[k])
-                log_l = np.log(lat + np.float32(_EPS))
+                    lat = base * np.exp(ft(contrast) * self.levels[k])
+                log_l = np.log(lat + ft(_EPS)).astype(np.float32, copy=False)
             num += block_fit(*_gradients(log_l, self.hb, self.wb), d, self._blocks)
         return num
 
