@@ -9,7 +9,7 @@ on its own over each exposure, each run through ``EdiMethod``, ``TrmdMethod``,
 
 * **tripod**: the camera shakes by at most 0.3 px (c = 0.2 and 0.75), events with their
   times. The motion method finds no global motion, or only the mover's, and falls back to
-  EDI (at c = 0.75 the fused method uses its network only where that fallback is whole).
+  EDI (at c = 0.75 the fused method uses its network only where it fell back).
 * **binned**: the camera moves up to 4 px (c = 0.2) or 15 px (c = 0.75) and the events are
   given as 18 bins per exposure (and each frame's mirror image, 12 frames): no event times,
   so the fused method reads EDI's frames in the motion method's place.

@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 
 from trmd_cli.errors import InputError, WeightsError
-from trmd_cli.fusion import fusion_inputs
+from trmd_cli.fusion import (
+    QUIET_SIGMA,
+    FusionInputs,
+    fusion_inputs,
+    keep_where_quiet,
+    motion_where_trusted,
+)
 from trmd_cli.methods import EdiMethod, FusedMethod, MotionMethod, TrmdMethod
 from trmd_cli.models.fusion import (
     EVENT_CLIP,
@@ -42,11 +50,14 @@ def _margins(frames: np.ndarray, other: np.ndarray, sharp: np.ndarray) -> tuple[
     return a[mid] - b[mid], float(np.mean(a)) - float(np.mean(b))
 
 
+#: a small camera shake, nothing moving on its own
+MOVING = MotionRanges(translation_px=12, rotation_deg=0.5, scale=0.01, perspective=0,
+                      curvature=0.2, foreground_prob=0.0)
+
+
 def _sample(seed: int = 3):
-    motion = MotionRanges(translation_px=12, rotation_deg=0.5, scale=0.01, perspective=0,
-                          curvature=0.2, foreground_prob=0.0)
     return make_sample(texture(300, 400, seed=seed), size=(96, 72),
-                       rng=np.random.default_rng(seed), motion=motion,
+                       rng=np.random.default_rng(seed), motion=MOVING,
                        sensor=SensorConfig.clean(0.2), read_noise=0.003)
 
 
@@ -105,6 +116,37 @@ def test_weights_round_trip_and_bad_files(tmp_path):
     save_file({"w": torch.zeros(1)}, str(other), metadata={"format": "trmd-weights"})
     with pytest.raises(WeightsError, match="not fusion weights"):
         load_fusion(other)
+
+
+def test_where_nothing_fired_and_no_motion_is_used_the_frames_are_edis():
+    """keep_where_quiet, by construction: the network's frames (1) where events fired densely
+    or the motion method's weight is above 0, EDI's (0) more than 4σ from any event where the
+    weight is 0, and a blend that falls monotonically in between; motion_where_trusted blends
+    the motion frames in by the weight; colour frames alike."""
+    k, h, w = 3, 40, 120
+    events = np.zeros((k, h, w), np.float32)
+    events[0, :, :30] = 0.2  # every pixel of the left quarter fired
+    weight = np.zeros((k, h, w), np.float32)
+    weight[:, 10:20, 100:110] = 0.3  # the motion used there, far from any event
+    for shape in ((k, h, w), (k, h, w, 3)):
+        ins = FusionInputs(np.zeros(shape[1:], np.float32), np.zeros(shape, np.float32),
+                           np.zeros(shape, np.float32), np.zeros(shape, np.float32), weight,
+                           events, prepared=None)
+        out = keep_where_quiet(np.ones(shape, np.float32), ins)
+        assert out.shape == shape and out.dtype == np.float32
+        row = out[1, 30] if out.ndim == 3 else out[1, 30, :, 1]
+        assert np.all(row[:30] == 1.0)
+        far = 30 + int(np.ceil(4 * QUIET_SIGMA))
+        assert np.all(row[far:100] == 0.0)
+        assert np.all(np.diff(row[:100]) <= 0) and 0 < row[45] < 1
+        assert np.all(out[:, 10:20, 100:110] == 1.0)
+        # beyond MAX_CONTRAST: the motion frames (here 2) by the weight, the fused (1) by
+        # the rest
+        ins = FusionInputs(ins.blurry, ins.edi, ins.trmd, np.full(shape, 2.0, np.float32),
+                           weight, events, prepared=None)
+        got = motion_where_trusted(np.ones(shape, np.float32), ins)
+        assert got.shape == shape and got.dtype == np.float32
+        assert np.allclose(got[:, 10:20, 100:110], 1.3) and np.all(got[:, 30:] == 1.0)
 
 
 @needs_weights
@@ -189,9 +231,10 @@ def test_shipped_fusion_keeps_what_a_still_camera_saw(mover):
     and EDI's frames are B there. The motion method finds no global motion and falls back to
     EDI; the network must not smooth what B holds. In the mean over four DAVIS-like samples
     (PSNR near 50 dB where nothing moves) the fused middle frame is within 1 dB of EDI's and
-    the sequence within 0.5 dB. Measured: nothing moving −0.47 / +0.11 dB, one mover +1.92 /
-    +2.60; a network never shown a still camera gave −3.21 / −2.13 and +0.31 / +1.55, the
-    texture smoothed."""
+    the sequence within 0.5 dB. Measured: nothing moving +0.74 / +0.78 dB, one mover +2.09 /
+    +2.67 (the network alone, without EDI's frames where nothing fired: −0.47 / +0.11 and
+    +1.92 / +2.60); a network never shown a still camera gave −3.21 / −2.13 and +0.31 /
+    +1.55, the texture smoothed."""
     still = MotionRanges(translation_px=0.3, rotation_deg=0.0, scale=0.0, perspective=0,
                          curvature=0.2, foreground_prob=1.0 if mover else 0.0, max_layers=1,
                          layer_translation_px=25.0, layer_size=(0.3, 0.5))
@@ -210,13 +253,12 @@ def test_shipped_fusion_keeps_what_a_still_camera_saw(mover):
 
 
 @needs_weights
-def test_beyond_its_sensors_the_network_is_not_used(tmp_path):
-    """A network that changes every frame: at c = 0.2 the fused frames differ from the motion
-    method's; at c = 0.8 (beyond MAX_CONTRAST) they are the motion method's, with a note.
-    Where the network's motion input is EDI's frames at a weight of 0 throughout (a still
-    camera, on which the motion method falls back whole; binned data) it is used up to
-    MAX_FALLBACK_CONTRAST: at c = 0.8 the frames are the network's, at 1.2 the motion
-    method's (binned: TRMD's)."""
+def test_beyond_its_sensors_the_network_is_used_where_the_motion_fell_back(tmp_path):
+    """A network that changes every frame. At c = 0.2 the fused frames differ from the motion
+    method's; beyond MAX_FALLBACK_CONTRAST (c = 1.2) they are the motion method's, with a
+    note. Between it and MAX_CONTRAST (c = 0.8) they are the motion method's where its guard's
+    weight is 1 and the network's where it is 0 (where events fired). Binned data (weight 0
+    throughout) is fused up to MAX_FALLBACK_CONTRAST, beyond it gets TRMD's frames."""
     from trmd_cli.models.fusion import MAX_CONTRAST, MAX_FALLBACK_CONTRAST
 
     s = _sample()
@@ -229,30 +271,30 @@ def test_beyond_its_sensors_the_network_is_not_used(tmp_path):
     alone = MotionMethod(3, contrast=0.2)(s.blurry, s.events, s.exposure)
     assert np.abs(inside.frames - alone.frames).mean() > 0.04
     c = 0.8
-    assert c > MAX_CONTRAST
-    beyond = FusedMethod(3, contrast=c, fusion_weights=path, threads=1)(
+    assert MAX_CONTRAST < c <= MAX_FALLBACK_CONTRAST < 1.2
+    beyond = FusedMethod(3, contrast=1.2, fusion_weights=path, threads=1)(
         s.blurry, s.events, s.exposure)
-    alone = MotionMethod(3, contrast=c)(s.blurry, s.events, s.exposure)
+    alone = MotionMethod(3, contrast=1.2)(s.blurry, s.events, s.exposure)
     np.testing.assert_allclose(beyond.frames, alone.frames, atol=1e-6)
     assert any("beyond the fusion network" in note for note in beyond.notes)
-    # a still camera: the motion method falls back to EDI on the whole frame, the network's
-    # input is the one it saw at any c, and it is used up to MAX_FALLBACK_CONTRAST
-    still = make_sample(texture(300, 400, seed=3), size=(96, 72),
-                        rng=np.random.default_rng(3), motion=MotionRanges.static(),
-                        sensor=SensorConfig.clean(0.2), read_noise=0.003)
-    for c_still, used in ((c, True), (1.2, False)):
-        got = FusedMethod(3, contrast=c_still, fusion_weights=path, threads=1)(
-            still.blurry, still.events, still.exposure)
-        alone = MotionMethod(3, contrast=c_still)(still.blurry, still.events, still.exposure)
-        assert any("used EDI" in note for note in alone.notes)
-        if used:
-            assert np.abs(got.frames - alone.frames).mean() > 0.04
-            assert not got.notes
-        else:
-            np.testing.assert_allclose(got.frames, alone.frames, atol=1e-6)
-            assert any("beyond the fusion network" in note for note in got.notes)
+    # the camera moves and so does an object: the guard trusts the motion on about half the
+    # frame and falls back to EDI on a tenth of it
+    mixed = make_sample(texture(300, 400, seed=3), size=(128, 96),
+                        rng=np.random.default_rng(3), sensor=SensorConfig.clean(0.2),
+                        motion=replace(MOVING, foreground_prob=1.0, max_layers=1,
+                                       layer_translation_px=25.0, layer_size=(0.3, 0.5)),
+                        read_noise=0.003)
+    ins = fusion_inputs(mixed.blurry, mixed.events, mixed.exposure,
+                        TrmdMethod(3, contrast=c, threads=1), 3)
+    trusted, fell_back = ins.weight == 1.0, (ins.weight == 0.0) & _fired_densely(mixed.events)
+    assert trusted.mean() > 0.3 and fell_back.mean() > 0.03
+    got = FusedMethod(3, contrast=c, fusion_weights=path, threads=1)(
+        mixed.blurry, mixed.events, mixed.exposure)
+    alone = MotionMethod(3, contrast=c)(mixed.blurry, mixed.events, mixed.exposure)
+    assert not got.notes
+    np.testing.assert_allclose(got.frames[trusted], alone.frames[trusted], atol=1e-6)
+    assert np.abs(got.frames - alone.frames)[fell_back].mean() > 0.04
     bins = np.random.default_rng(1).integers(-2, 3, (6, 72, 96)).astype(np.float32)
-    assert c <= MAX_FALLBACK_CONTRAST < 1.2
     for c_bins, used in ((c, True), (1.2, False)):
         got = FusedMethod(3, contrast=c_bins, fusion_weights=path, threads=1).from_bins(
             s.blurry, bins)
@@ -263,6 +305,35 @@ def test_beyond_its_sensors_the_network_is_not_used(tmp_path):
         else:  # beyond them: TRMD's frames
             np.testing.assert_allclose(got.frames, trmd.frames, atol=1e-6)
             assert any("beyond the fusion network" in note for note in got.notes)
+
+
+@needs_weights
+def test_where_nothing_fired_a_still_camera_gets_edis_frames(tmp_path):
+    """A still camera and a noise-free sensor: no event fires, the motion method falls back to
+    EDI whole, and nothing says anything moved, so even a network that changes every frame
+    gives EDI's frames (B, at every instant)."""
+    still = make_sample(texture(300, 400, seed=3), size=(96, 72), rng=np.random.default_rng(3),
+                        motion=MotionRanges.static(), sensor=SensorConfig.clean(0.2),
+                        read_noise=0.003)
+    assert len(still.events) == 0
+    net = FusionNet(8)
+    with torch.no_grad():
+        net.out.bias.fill_(0.05)
+    path = save_fusion(tmp_path / "shift.safetensors", net, {})
+    got = FusedMethod(3, contrast=0.2, fusion_weights=path, threads=1)(
+        still.blurry, still.events, still.exposure)
+    edi = EdiMethod(3, contrast=0.2)(still.blurry, still.events, still.exposure)
+    np.testing.assert_allclose(got.frames, edi.frames, atol=1e-6)
+    np.testing.assert_allclose(edi.frames, np.repeat(still.blurry[None], 7, 0), atol=1e-6)
+
+
+def _fired_densely(events, share: float = 0.5) -> np.ndarray:
+    """(H, W) bool: pixels around which more than ``share`` of the pixels within a few fired."""
+    import cv2
+
+    fired = np.zeros((events.height, events.width), np.float32)
+    fired[events.y, events.x] = 1.0
+    return cv2.GaussianBlur(fired, (0, 0), 3.0) > share
 
 
 def test_info_describes_fusion_weights(tmp_path):

@@ -15,7 +15,8 @@ with objects moving on their own in most: the scene a camera on a tripod sees, w
 motion method finds no global motion and falls back to EDI. A network that never saw one
 smoothed the texture B holds sharp (3 dB below EDI on a still scene, ``tests/test_fusion.py``).
 Their sensors alternate between the DAVIS-like default and one drawn with a threshold of up
-to 0.8.
+to 0.8. ``--max-contrast`` raises the largest threshold of the moving cameras' drawn sensors
+(0.5 by default, the training ranges').
 
     python weights_recipe/make_fusionset.py -o ../runs/fusion_346.h5 --count 480 --workers 2
 """
@@ -39,7 +40,8 @@ STILL_CAMERA = dict(translation_px=1.0, rotation_deg=0.2, scale=0.005, perspecti
                     layer_translation_px=60.0, layer_size=(0.15, 0.5), margin=0.45)
 
 
-def _draw(images: list[Path], seed: int, index: int, still_every: int = 0):
+def _draw(images: list[Path], seed: int, index: int, still_every: int = 0,
+          max_contrast: float = 0.5):
     from trmd_cli.read.frames import read_image
     from trmd_cli.simulate import MotionRanges, SensorConfig, make_sample
     from trmd_cli.simulate.dataset import DATASET_MOTION, SensorRanges
@@ -59,7 +61,7 @@ def _draw(images: list[Path], seed: int, index: int, still_every: int = 0):
         return make_sample(image, n=N, size=SIZE, exposure_us=20_000, rng=rng,
                            sensor=SensorConfig(), motion=MotionRanges())
     gain = float(rng.uniform(0.4, 1.0))
-    sensor = SensorRanges().draw(rng)
+    sensor = SensorRanges(contrast=(0.1, max_contrast)).draw(rng)
     exposure = int(round(rng.uniform(10.0, 60.0) * 1000 / (2 * N))) * 2 * N
     return make_sample(image * np.float32(gain), n=N, size=SIZE, exposure_us=exposure, rng=rng,
                        sensor=sensor, motion=DATASET_MOTION,
@@ -69,20 +71,22 @@ def _draw(images: list[Path], seed: int, index: int, still_every: int = 0):
 _STATE: dict = {}
 
 
-def _init(images: list[Path], seed: int, still_every: int = 0) -> None:
+def _init(images: list[Path], seed: int, still_every: int = 0,
+          max_contrast: float = 0.5) -> None:
     import torch
 
     from trmd_cli.methods import MethodConfig, make_method
 
     torch.set_num_threads(1)
-    _STATE.update(images=images, seed=seed, still_every=still_every,
+    _STATE.update(images=images, seed=seed, still_every=still_every, max_contrast=max_contrast,
                   trmd=make_method(MethodConfig("trmd", n=N, threads=1)))
 
 
 def _one(index: int) -> dict[str, np.ndarray]:
     from trmd_cli.fusion import fusion_inputs
 
-    s = _draw(_STATE["images"], _STATE["seed"], index, _STATE["still_every"])
+    s = _draw(_STATE["images"], _STATE["seed"], index, _STATE["still_every"],
+              _STATE["max_contrast"])
     ins = fusion_inputs(s.blurry, s.events, s.exposure, _STATE["trmd"], N)
     out = {k: np.asarray(getattr(ins, k), np.float16) for k in FIELDS if k != "truth"}
     out["truth"] = np.asarray(s.sharp, np.float16)
@@ -101,6 +105,8 @@ def main() -> None:
     ap.add_argument("--still-every", type=int, default=0,
                     help="every K-th sample a still camera with objects moving on their own "
                          "(0: none)")
+    ap.add_argument("--max-contrast", type=float, default=0.5,
+                    help="largest threshold of the drawn sensors of the moving cameras")
     args = ap.parse_args()
     import h5py
 
@@ -111,12 +117,14 @@ def main() -> None:
     k = 2 * N + 1
     part = args.output.with_suffix(".part.h5")
     with h5py.File(part, "w") as f, get_context("spawn").Pool(
-            args.workers, _init, (images, args.seed, args.still_every)) as pool:
+            args.workers, _init, (images, args.seed, args.still_every,
+                                  args.max_contrast)) as pool:
         ds = {name: f.create_dataset(name, (args.count, k, h, w), np.float16, chunks=(1, k, h, w))
               for name in FIELDS}
         ds["blurry"] = f.create_dataset("blurry", (args.count, h, w), np.float16)
         ds["contrast"] = f.create_dataset("contrast", (args.count,), np.float32)
-        f.attrs.update(n=N, seed=args.seed, count=args.count, still_every=args.still_every)
+        f.attrs.update(n=N, seed=args.seed, count=args.count, still_every=args.still_every,
+                       max_contrast=args.max_contrast)
         for i, item in enumerate(pool.imap(_one, range(args.count))):
             for name, v in item.items():
                 ds[name][i] = v

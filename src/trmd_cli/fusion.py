@@ -18,7 +18,8 @@ import numpy as np
 from .edi import check_blurry
 from .events import EventStream, Exposure
 
-__all__ = ["FusionInputs", "fusion_inputs", "fusion_inputs_from_bins"]
+__all__ = ["FusionInputs", "fusion_inputs", "fusion_inputs_from_bins", "keep_where_quiet",
+           "motion_where_trusted", "QUIET_SIGMA", "QUIET_SHARE"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -53,8 +54,7 @@ class FusionInputs:
 
 
 def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, trmd,
-                  n: int, prepared=None, noise: float | None = None,
-                  motion=None) -> FusionInputs:
+                  n: int, prepared=None, noise: float | None = None) -> FusionInputs:
     """Run EDI, TRMD and the motion method on one exposure as ``trmd deblur`` runs each.
 
     Args:
@@ -65,8 +65,6 @@ def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, t
         prepared: the exposure already settled by ``trmd.prepare`` (None: settled here).
         noise: the σ the deconvolution is weighed by when ``blurry`` had its fixed pattern
             removed (see :func:`~trmd_cli.methods.motion_frames`).
-        motion: ``(edi, res)`` of :func:`~trmd_cli.methods.motion_frames` at the 2N+1
-            instants with ``prepared``, when already run (then only TRMD runs here).
     """
     from .methods import motion_frames
     from .threads import beside
@@ -79,8 +77,7 @@ def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, t
     # 1.33 s per 346×260 frame on 2 cores, the same frames (one thread per process: in turn)
     later = beside(trmd.grid_frames, b, events, exposure, prep, lane="network")
     fr = np.arange(2 * n + 1) / (2 * n)
-    edi, res = motion_frames(b, events, exposure, fr, prep, noise=noise) if motion is None \
-        else motion
+    edi, res = motion_frames(b, events, exposure, fr, prep, noise=noise)
     frames = later.result()
     h, w = b.shape[:2]
     weight = np.zeros((2 * n + 1, h, w), np.float32) if res.weights is None else res.weights
@@ -120,3 +117,51 @@ def fusion_inputs_from_bins(blurry: np.ndarray, bins: np.ndarray, trmd, n: int,
         bins_for(bins, n))
     return FusionInputs(blurry, edi, frames, edi, np.zeros((2 * n + 1, h, w), np.float32),
                         dlog, prep)
+
+
+#: Gaussian σ (px) of the neighbourhood whose share of fired pixels says whether something moved
+QUIET_SIGMA = 6.0
+#: the share of fired pixels in that neighbourhood from which the network's frame is kept whole
+QUIET_SHARE = 0.05
+
+
+def keep_where_quiet(fused: np.ndarray, ins: FusionInputs) -> np.ndarray:
+    """The fused frames, with EDI's where nothing says that anything moved: the motion method
+    fell back there (weight 0) and hardly an event fired around (under :data:`QUIET_SHARE` of
+    the pixels within about :data:`QUIET_SIGMA` px, blended in between).
+
+    Such a pixel saw a change of less than c over the exposure, so B is its latent frame at
+    every instant as far as anything measured tells, and EDI's frame is B there. The network
+    learnt from cameras that shook by up to a pixel without firing at a high threshold, and
+    sharpened what a still scene holds sharp: on a tripod at c = 0.75 its middle frame was up
+    to 6 dB below EDI's (``bench/bench_still_camera.py``).
+
+    Args:
+        fused: (2N+1, H, W[, 3]) float32, the network's frames; ins: what it read.
+    Returns:
+        (2N+1, H, W[, 3]) float32.
+    """
+    import cv2
+
+    fired = np.any(ins.events != 0, axis=0).astype(np.float32)
+    share = cv2.GaussianBlur(fired, (0, 0), QUIET_SIGMA)
+    keep = np.maximum(np.minimum(share / QUIET_SHARE, 1.0)[None], ins.weight > 0)
+    if fused.ndim == 4:
+        keep = keep[..., None]
+    return (ins.edi + keep * (fused - ins.edi)).astype(np.float32)
+
+
+def motion_where_trusted(fused: np.ndarray, ins: FusionInputs) -> np.ndarray:
+    """The motion method's frames where its guard trusts them whole (weight 1), the fused
+    frames where it fell back (weight 0), blended by the weight in between: the fused method
+    beyond the thresholds at which its network saw motion frames
+    (:data:`~trmd_cli.models.fusion.MAX_CONTRAST`). Where the weight is 0 its input is EDI's
+    frames, as on the still cameras of its training set, which reach higher thresholds.
+
+    Args:
+        fused: (2N+1, H, W[, 3]) float32, the fused frames; ins: what the network read.
+    Returns:
+        (2N+1, H, W[, 3]) float32.
+    """
+    w = ins.weight[..., None] if fused.ndim == 4 else ins.weight
+    return (fused + w * (ins.motion - fused)).astype(np.float32)

@@ -692,9 +692,10 @@ class MotionMethod(_RemovesPattern):
 class FusedMethod(_RemovesPattern):
     """TRMD and the motion method fused: per latent instant a small trained network
     (:mod:`trmd_cli.models.fusion`) corrects the motion method's frame from TRMD's, EDI's, B,
-    the motion guard's weight and the events (:mod:`trmd_cli.fusion`). One c for all three,
-    settled as EDI settles it; instants other than the 2N+1 are propagated from the nearest
-    fused frame by event integration, as TRMD does."""
+    the motion guard's weight and the events (:mod:`trmd_cli.fusion`); where the motion method
+    fell back and no event fired, EDI's frame is kept. One c for all three, settled as EDI
+    settles it; instants other than the 2N+1 are propagated from the nearest fused frame by
+    event integration, as TRMD does."""
 
     name = "fused"
     needs = MethodNeeds(contrast=True, weights=True)
@@ -755,7 +756,7 @@ class FusedMethod(_RemovesPattern):
         return out
 
     def __call__(self, blurry, events, exposure, instants_us=None) -> Estimate:
-        from .fusion import fusion_inputs
+        from .fusion import fusion_inputs, motion_where_trusted
         from .models.fusion import MAX_CONTRAST, MAX_FALLBACK_CONTRAST
 
         recorded = check_blurry(blurry, events.width, events.height)
@@ -766,23 +767,20 @@ class FusedMethod(_RemovesPattern):
         # the motion method's own fallbacks ("used EDI") are not this method's: where the
         # motion is not used the network leans on TRMD, so they are not passed on
         notes: tuple[str, ...] = ()
-        if prep.contrast > MAX_CONTRAST:
-            fr = np.arange(2 * self.n + 1) / (2 * self.n)
-            edi, res = motion_frames(b, events, exposure, fr, prep, noise=noise)
-            if res.weights is None and prep.contrast <= MAX_FALLBACK_CONTRAST:
-                # the motion method fell back to EDI on the whole frame: the network's input
-                # is then the one it saw at any c on the still cameras of its training set
-                frames = self._fuse(fusion_inputs(b, events, exposure, self._trmd, self.n,
-                                                  prep, noise, (edi, res)))
-            else:
-                # the network is not run, so neither is TRMD, which only it reads
-                frames = res.frames
-                notes = (f"c = {prep.contrast:.2f} is beyond the fusion network's sensors "
-                         f"(c ≤ {MAX_CONTRAST} where the motion method's frames are used): "
-                         "the motion method's frames",)
+        if prep.contrast <= MAX_FALLBACK_CONTRAST:
+            ins = fusion_inputs(b, events, exposure, self._trmd, self.n, prep, noise)
+            frames = self._fuse(ins)
+            if prep.contrast > MAX_CONTRAST:
+                # beyond the c at which the network saw motion frames, it is trusted where the
+                # motion method fell back (its input there, EDI's frames, is the one it saw on
+                # the still cameras of its training set, up to this c), not where it did not
+                frames = motion_where_trusted(frames, ins)
         else:
-            frames = self._fuse(fusion_inputs(b, events, exposure, self._trmd, self.n, prep,
-                                              noise))
+            # the network is not run, so neither is TRMD, which only it reads
+            fr = np.arange(2 * self.n + 1) / (2 * self.n)
+            frames = motion_frames(b, events, exposure, fr, prep, noise=noise)[1].frames
+            notes = (f"c = {prep.contrast:.2f} is beyond the fusion network's sensors "
+                     f"(c ≤ {MAX_FALLBACK_CONTRAST}): the motion method's frames",)
         frames = np.ascontiguousarray(frames, np.float32)
         frames = frames[nearest] if exact.all() else \
             _at_instants(frames, events, grid, inst, nearest, prep.contrast, prep.hot)
@@ -790,10 +788,12 @@ class FusedMethod(_RemovesPattern):
                         prep.hot_pixels, prep.note, notes)
 
     def _fuse(self, ins) -> np.ndarray:
-        """The network's frames (K, H, W[, 3]) float32 from its inputs
-        (:class:`~trmd_cli.fusion.FusionInputs`)."""
+        """The fused frames (K, H, W[, 3]) float32 from the network's inputs
+        (:class:`~trmd_cli.fusion.FusionInputs`): the network's, and EDI's where nothing
+        moved (:func:`~trmd_cli.fusion.keep_where_quiet`)."""
         import torch
 
+        from .fusion import keep_where_quiet
         from .models.fusion import fusion_planes
         from .precision import autocast
 
@@ -811,7 +811,7 @@ class FusedMethod(_RemovesPattern):
         frames = out.reshape(k, *ins.motion.shape[3:], *out.shape[1:])
         if ins.motion.ndim == 4:  # (K, C, H, W) → (K, H, W, C)
             frames = frames.transpose(0, 2, 3, 1)
-        return np.ascontiguousarray(frames, np.float32)
+        return keep_where_quiet(np.ascontiguousarray(frames, np.float32), ins)
 
     def from_bins(self, blurry, bins, fractions=None) -> Estimate:
         """Binned events hold no event times to find a motion in: the network is given the

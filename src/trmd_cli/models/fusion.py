@@ -37,19 +37,21 @@ DEFAULT_FUSION = "fusion_default.safetensors"
 PLANES = 7
 #: the events' log-intensity change is clipped to this (hot pixels and bursts)
 EVENT_CLIP = 3.0
-#: the largest c the network is used at: the 99th percentile of the c settled on its
-#: training set's moving cameras (sensors of c = 0.1–0.5; the estimate runs high), where the
-#: motion method's frames are its motion input. Beyond it the network is
-#: out of its depth — on a c = 0.7 set it fell 1.1 dB below the motion method it corrects
-#: — and the fused method gives the motion method's frames
+#: the largest c at which the network corrects the motion method's frames wherever they are
+#: used: the 99th percentile of the c settled on its training set's moving cameras (sensors
+#: of c = 0.1–0.5; the estimate runs high). Beyond it the network fell 1.1 dB below the
+#: motion method on a c = 0.7 set of large motions the motion method deblurs whole, and the
+#: fused method keeps the motion method's frames where its guard trusts them
+#: (:func:`~trmd_cli.fusion.motion_where_trusted`)
 MAX_CONTRAST = 0.65
 #: the largest c the network is used at where its motion input is EDI's frames with a
-#: weight of 0 throughout (binned data; a frame the motion method fell back on whole): what
-#: it saw on the still camera's samples of its training set, whose sensors reach c = 0.8
-#: and whose settled c spans the threshold search's whole range (to its bound, 1.0). On
-#: c = 0.75 binned frames with ground truth, c settled per frame at 0.95 in the median, its
-#: frames were above TRMD's (PSNR middle / sequence 29.90 / 28.15 against 29.80 / 27.23 dB;
-#: ``bench/bench_still_camera.py``)
+#: weight of 0 (binned data; where the motion method fell back): what it saw on the still
+#: camera's samples of its training set, whose sensors reach c = 0.8 and whose settled c
+#: spans the threshold search's whole range (to its bound, 1.0). On c = 0.75 binned frames
+#: with ground truth, c settled per frame at 0.95 in the median, its frames were above TRMD's
+#: (PSNR middle / sequence 29.90 / 28.15 against 29.80 / 27.23 dB;
+#: ``bench/bench_still_camera.py``). Beyond it: TRMD's frames on bins, the motion method's
+#: with event times
 MAX_FALLBACK_CONTRAST = 1.0
 
 
