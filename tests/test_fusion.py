@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from trmd_cli.errors import InputError, WeightsError
+from trmd_cli.events import make_stream
 from trmd_cli.fusion import (
     QUIET_SIGMA,
     FusionInputs,
@@ -124,15 +125,14 @@ def test_where_nothing_fired_and_no_motion_is_used_the_frames_are_edis():
     weight is 0, and a blend that falls monotonically in between; motion_where_trusted blends
     the motion frames in by the weight; colour frames alike."""
     k, h, w = 3, 40, 120
-    events = np.zeros((k, h, w), np.float32)
-    events[0, :, :30] = 0.2  # every pixel of the left quarter fired
+    fired = np.zeros((h, w), bool)
+    fired[:, :30] = True  # every pixel of the left quarter fired
+    events = np.where(fired, 0.2, 0.0).astype(np.float32)[None].repeat(k, 0)
     weight = np.zeros((k, h, w), np.float32)
     weight[:, 10:20, 100:110] = 0.3  # the motion used there, far from any event
     for shape in ((k, h, w), (k, h, w, 3)):
-        ins = FusionInputs(np.zeros(shape[1:], np.float32), np.zeros(shape, np.float32),
-                           np.zeros(shape, np.float32), np.zeros(shape, np.float32), weight,
-                           events, prepared=None)
-        out = keep_where_quiet(np.ones(shape, np.float32), ins)
+        out = keep_where_quiet(np.ones(shape, np.float32), np.zeros(shape, np.float32), weight,
+                               fired)
         assert out.shape == shape and out.dtype == np.float32
         row = out[1, 30] if out.ndim == 3 else out[1, 30, :, 1]
         assert np.all(row[:30] == 1.0)
@@ -142,8 +142,9 @@ def test_where_nothing_fired_and_no_motion_is_used_the_frames_are_edis():
         assert np.all(out[:, 10:20, 100:110] == 1.0)
         # beyond MAX_CONTRAST: the motion frames (here 2) by the weight, the fused (1) by
         # the rest
-        ins = FusionInputs(ins.blurry, ins.edi, ins.trmd, np.full(shape, 2.0, np.float32),
-                           weight, events, prepared=None)
+        zeros = np.zeros(shape, np.float32)
+        ins = FusionInputs(zeros[0], zeros, zeros, np.full(shape, 2.0, np.float32), weight,
+                           events, fired, prepared=None)
         got = motion_where_trusted(np.ones(shape, np.float32), ins)
         assert got.shape == shape and got.dtype == np.float32
         assert np.allclose(got[:, 10:20, 100:110], 1.3) and np.all(got[:, 30:] == 1.0)
@@ -231,8 +232,8 @@ def test_shipped_fusion_keeps_what_a_still_camera_saw(mover):
     and EDI's frames are B there. The motion method finds no global motion and falls back to
     EDI; the network must not smooth what B holds. In the mean over four DAVIS-like samples
     (PSNR near 50 dB where nothing moves) the fused middle frame is within 1 dB of EDI's and
-    the sequence within 0.5 dB. Measured: nothing moving +0.74 / +0.78 dB, one mover +2.09 /
-    +2.67 (the network alone, without EDI's frames where nothing fired: −0.47 / +0.11 and
+    the sequence within 0.5 dB. Measured: nothing moving +0.11 / +0.14 dB, one mover +2.02 /
+    +2.61 (the network alone, without EDI's frames where nothing fired: −0.47 / +0.11 and
     +1.92 / +2.60); a network never shown a still camera gave −3.21 / −2.13 and +0.31 /
     +1.55, the texture smoothed."""
     still = MotionRanges(translation_px=0.3, rotation_deg=0.0, scale=0.0, perspective=0,
@@ -308,23 +309,37 @@ def test_beyond_its_sensors_the_network_is_used_where_the_motion_fell_back(tmp_p
 
 
 @needs_weights
-def test_where_nothing_fired_a_still_camera_gets_edis_frames(tmp_path):
+@pytest.mark.parametrize("noise", [False, True], ids=["no event", "isolated events"])
+def test_where_nothing_fired_a_still_camera_gets_edis_frames(tmp_path, noise):
     """A still camera and a noise-free sensor: no event fires, the motion method falls back to
     EDI whole, and nothing says anything moved, so even a network that changes every frame
-    gives EDI's frames (B, at every instant)."""
+    (by 0.05) gives EDI's frames (B, at every instant). The sensor's noise, 300 events at
+    random pixels and times (one pixel in 23), says nothing either: EDI's model leaves out the
+    events no neighbour corroborates, and so does the test of what fired (measured 0.0012 from
+    EDI's frames on average; counting every event, 0.041: the network's almost everywhere)."""
     still = make_sample(texture(300, 400, seed=3), size=(96, 72), rng=np.random.default_rng(3),
                         motion=MotionRanges.static(), sensor=SensorConfig.clean(0.2),
                         read_noise=0.003)
     assert len(still.events) == 0
+    events = still.events
+    if noise:
+        rng = np.random.default_rng(5)
+        n = 300
+        t = np.sort(rng.integers(still.exposure.start_us, still.exposure.end_us, n))
+        events = make_stream(rng.integers(0, 96, n), rng.integers(0, 72, n), t,
+                             rng.integers(0, 2, n), 96, 72)
     net = FusionNet(8)
     with torch.no_grad():
         net.out.bias.fill_(0.05)
     path = save_fusion(tmp_path / "shift.safetensors", net, {})
     got = FusedMethod(3, contrast=0.2, fusion_weights=path, threads=1)(
-        still.blurry, still.events, still.exposure)
-    edi = EdiMethod(3, contrast=0.2)(still.blurry, still.events, still.exposure)
-    np.testing.assert_allclose(got.frames, edi.frames, atol=1e-6)
-    np.testing.assert_allclose(edi.frames, np.repeat(still.blurry[None], 7, 0), atol=1e-6)
+        still.blurry, events, still.exposure)
+    edi = EdiMethod(3, contrast=0.2)(still.blurry, events, still.exposure)
+    if noise:
+        assert np.abs(got.frames - edi.frames).mean() < 0.005
+    else:
+        np.testing.assert_allclose(got.frames, edi.frames, atol=1e-6)
+        np.testing.assert_allclose(edi.frames, np.repeat(still.blurry[None], 7, 0), atol=1e-6)
 
 
 def _fired_densely(events, share: float = 0.5) -> np.ndarray:

@@ -278,6 +278,12 @@ class EdiEvents:
     exposure: Exposure
     count: int
 
+    def fired(self) -> np.ndarray:
+        """(H, W) bool: the pixels with an event in the model."""
+        out = np.zeros(self.height * self.width, bool)
+        out[self.pix] = True
+        return out.reshape(self.height, self.width)
+
     @classmethod
     def build(cls, events: EventStream, exposure: Exposure,
               hot_mask: np.ndarray | None = None, *,

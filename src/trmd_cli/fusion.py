@@ -33,6 +33,10 @@ class FusionInputs:
             (0 where the guard fell back to EDI).
         events: (2N+1, H, W) float32, ``c · V(k)``: the log-intensity change from the middle
             instant to k the events report (0 at k = N).
+        fired: (H, W) bool, the pixels whose events say the scene changed there: those EDI's
+            model holds for a stream (without the hot pixels' and the isolated ones, the
+            sensor's noise); every pixel with a count for bins (the isolation test on bins,
+            coarse in time, left out counts the scene fired: 0.1 dB lower at c = 0.75).
         prepared: the exposure as settled once for all three
             (:class:`~trmd_cli.methods.Prepared`: c, the hot pixels, the per-pixel sort).
         notes: what the user should know (the motion method's fallbacks).
@@ -44,6 +48,7 @@ class FusionInputs:
     motion: np.ndarray
     weight: np.ndarray
     events: np.ndarray
+    fired: np.ndarray
     prepared: object
     notes: tuple[str, ...] = ()
 
@@ -89,7 +94,7 @@ def fusion_inputs(blurry: np.ndarray, events: EventStream, exposure: Exposure, t
         dlog[:, prep.hot] = 0.0
     return FusionInputs(b, edi.astype(np.float32), frames.astype(np.float32),
                         res.frames.astype(np.float32), weight.astype(np.float32), dlog,
-                        prep, res.notes)
+                        prep.model.fired(), prep, res.notes)
 
 
 def fusion_inputs_from_bins(blurry: np.ndarray, bins: np.ndarray, trmd, n: int,
@@ -116,7 +121,7 @@ def fusion_inputs_from_bins(blurry: np.ndarray, bins: np.ndarray, trmd, n: int,
     dlog[[i for i in range(2 * n + 1) if i != n]] = prep.contrast * scer_from_bins(
         bins_for(bins, n))
     return FusionInputs(blurry, edi, frames, edi, np.zeros((2 * n + 1, h, w), np.float32),
-                        dlog, prep)
+                        dlog, np.any(bins != 0, axis=0), prep)
 
 
 #: Gaussian σ (px) of the neighbourhood whose share of fired pixels says whether something moved
@@ -125,7 +130,8 @@ QUIET_SIGMA = 6.0
 QUIET_SHARE = 0.05
 
 
-def keep_where_quiet(fused: np.ndarray, ins: FusionInputs) -> np.ndarray:
+def keep_where_quiet(fused: np.ndarray, edi: np.ndarray, weight: np.ndarray,
+                     fired: np.ndarray) -> np.ndarray:
     """The fused frames, with EDI's where nothing says that anything moved: the motion method
     fell back there (weight 0) and hardly an event fired around (under :data:`QUIET_SHARE` of
     the pixels within about :data:`QUIET_SIGMA` px, blended in between).
@@ -137,18 +143,20 @@ def keep_where_quiet(fused: np.ndarray, ins: FusionInputs) -> np.ndarray:
     to 6 dB below EDI's (``bench/bench_still_camera.py``).
 
     Args:
-        fused: (2N+1, H, W[, 3]) float32, the network's frames; ins: what it read.
+        fused, edi: (2N+1, H, W[, 3]) float32, the network's frames and EDI's.
+        weight: (2N+1, H, W) float32 [0, 1], the motion deconvolution's share in its frames.
+        fired: (H, W) bool, the pixels whose events say the scene changed there
+            (:attr:`FusionInputs.fired`).
     Returns:
         (2N+1, H, W[, 3]) float32.
     """
     import cv2
 
-    fired = np.any(ins.events != 0, axis=0).astype(np.float32)
-    share = cv2.GaussianBlur(fired, (0, 0), QUIET_SIGMA)
-    keep = np.maximum(np.minimum(share / QUIET_SHARE, 1.0)[None], ins.weight > 0)
+    share = cv2.GaussianBlur(fired.astype(np.float32), (0, 0), QUIET_SIGMA)
+    keep = np.maximum(np.minimum(share / QUIET_SHARE, 1.0)[None], weight > 0)
     if fused.ndim == 4:
         keep = keep[..., None]
-    return (ins.edi + keep * (fused - ins.edi)).astype(np.float32)
+    return (edi + keep * (fused - edi)).astype(np.float32)
 
 
 def motion_where_trusted(fused: np.ndarray, ins: FusionInputs) -> np.ndarray:

@@ -811,7 +811,8 @@ class FusedMethod(_RemovesPattern):
         frames = out.reshape(k, *ins.motion.shape[3:], *out.shape[1:])
         if ins.motion.ndim == 4:  # (K, C, H, W) → (K, H, W, C)
             frames = frames.transpose(0, 2, 3, 1)
-        return keep_where_quiet(np.ascontiguousarray(frames, np.float32), ins)
+        return keep_where_quiet(np.ascontiguousarray(frames, np.float32), ins.edi, ins.weight,
+                                ins.fired)
 
     def from_bins(self, blurry, bins, fractions=None) -> Estimate:
         """Binned events hold no event times to find a motion in: the network is given the
