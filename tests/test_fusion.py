@@ -12,7 +12,6 @@ from trmd_cli.errors import InputError, WeightsError
 from trmd_cli.events import make_stream
 from trmd_cli.fusion import (
     QUIET_SIGMA,
-    FusionInputs,
     fusion_inputs,
     keep_where_quiet,
     motion_where_trusted,
@@ -127,7 +126,6 @@ def test_where_nothing_fired_and_no_motion_is_used_the_frames_are_edis():
     k, h, w = 3, 40, 120
     fired = np.zeros((h, w), bool)
     fired[:, :30] = True  # every pixel of the left quarter fired
-    events = np.where(fired, 0.2, 0.0).astype(np.float32)[None].repeat(k, 0)
     weight = np.zeros((k, h, w), np.float32)
     weight[:, 10:20, 100:110] = 0.3  # the motion used there, far from any event
     for shape in ((k, h, w), (k, h, w, 3)):
@@ -142,10 +140,8 @@ def test_where_nothing_fired_and_no_motion_is_used_the_frames_are_edis():
         assert np.all(out[:, 10:20, 100:110] == 1.0)
         # beyond MAX_CONTRAST: the motion frames (here 2) by the weight, the fused (1) by
         # the rest
-        zeros = np.zeros(shape, np.float32)
-        ins = FusionInputs(zeros[0], zeros, zeros, np.full(shape, 2.0, np.float32), weight,
-                           events, fired, prepared=None)
-        got = motion_where_trusted(np.ones(shape, np.float32), ins)
+        got = motion_where_trusted(np.ones(shape, np.float32), np.full(shape, 2.0, np.float32),
+                                   weight)
         assert got.shape == shape and got.dtype == np.float32
         assert np.allclose(got[:, 10:20, 100:110], 1.3) and np.all(got[:, 30:] == 1.0)
 

@@ -159,7 +159,8 @@ def keep_where_quiet(fused: np.ndarray, edi: np.ndarray, weight: np.ndarray,
     return (edi + keep * (fused - edi)).astype(np.float32)
 
 
-def motion_where_trusted(fused: np.ndarray, ins: FusionInputs) -> np.ndarray:
+def motion_where_trusted(fused: np.ndarray, motion: np.ndarray,
+                         weight: np.ndarray) -> np.ndarray:
     """The motion method's frames where its guard trusts them whole (weight 1), the fused
     frames where it fell back (weight 0), blended by the weight in between: the fused method
     beyond the thresholds at which its network saw motion frames
@@ -167,9 +168,10 @@ def motion_where_trusted(fused: np.ndarray, ins: FusionInputs) -> np.ndarray:
     frames, as on the still cameras of its training set, which reach higher thresholds.
 
     Args:
-        fused: (2N+1, H, W[, 3]) float32, the fused frames; ins: what the network read.
+        fused, motion: (2N+1, H, W[, 3]) float32, the fused frames and the motion method's.
+        weight: (2N+1, H, W) float32 [0, 1], the motion deconvolution's share in its frames.
     Returns:
         (2N+1, H, W[, 3]) float32.
     """
-    w = ins.weight[..., None] if fused.ndim == 4 else ins.weight
-    return (fused + w * (ins.motion - fused)).astype(np.float32)
+    w = weight[..., None] if fused.ndim == 4 else weight
+    return (fused + w * (motion - fused)).astype(np.float32)

@@ -774,7 +774,7 @@ class FusedMethod(_RemovesPattern):
                 # beyond the c at which the network saw motion frames, it is trusted where the
                 # motion method fell back (its input there, EDI's frames, is the one it saw on
                 # the still cameras of its training set, up to this c), not where it did not
-                frames = motion_where_trusted(frames, ins)
+                frames = motion_where_trusted(frames, ins.motion, ins.weight)
         else:
             # the network is not run, so neither is TRMD, which only it reads
             fr = np.arange(2 * self.n + 1) / (2 * self.n)
