@@ -19,7 +19,8 @@ import signal
 import threading
 from collections.abc import Iterator
 
-__all__ = ["Terminated", "handled", "raise_if_received", "deferred", "recorded_only"]
+__all__ = ["Terminated", "handled", "raise_if_received", "deferred", "recorded_only",
+           "stacks_on_request"]
 
 
 class Terminated(KeyboardInterrupt):
@@ -73,18 +74,42 @@ def raise_if_received() -> None:
 def handled() -> Iterator[None]:
     """Install the recording handlers for SIGINT and SIGTERM (main thread only; elsewhere a
     no-op). Python's default for SIGTERM is to die on the spot, skipping every cleanup; here it
-    raises :class:`Terminated` instead."""
+    raises :class:`Terminated` instead. SIGUSR1, where there is one, prints every thread's
+    stack on stderr and the run goes on (:func:`stacks_on_request`)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     _received.clear()
     previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        yield
+        with stacks_on_request():
+            yield
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
         _received.clear()
+
+
+@contextlib.contextmanager
+def stacks_on_request() -> Iterator[None]:
+    """While active, ``kill -USR1 PID`` prints the Python stack of every thread of the process
+    on stderr, and the process goes on: to see where a run that seems stuck is. A no-op where
+    there is no SIGUSR1 or stderr is no file (a captured stream)."""
+    import faulthandler
+    import sys
+
+    usr1 = getattr(signal, "SIGUSR1", None)
+    try:
+        if usr1 is None or sys.__stderr__ is None:
+            raise ValueError
+        faulthandler.register(usr1, file=sys.__stderr__, all_threads=True)
+    except (ValueError, OSError, AttributeError, RuntimeError):
+        yield
+        return
+    try:
+        yield
+    finally:
+        faulthandler.unregister(usr1)
 
 
 @contextlib.contextmanager

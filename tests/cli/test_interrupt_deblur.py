@@ -265,3 +265,23 @@ def test_hfr_mp4_killed_leaves_a_temp_that_the_next_run_sweeps(tmp_path, long_re
 def _sleep(seconds: float) -> bool:
     time.sleep(seconds)
     return True
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGUSR1"), reason="no SIGUSR1 here")
+def test_sigusr1_prints_every_threads_stack_and_the_run_goes_on(tmp_path, long_rec):
+    """``kill -USR1`` on a run that seems stuck: its threads' stacks on stderr (the frame
+    loop's included), and it goes on writing frames; Ctrl-C then ends it as usual (every
+    frame in order in one process, as ``--video`` makes it)."""
+    out = tmp_path / "out"
+    proc = launch("deblur", str(long_rec), "-o", str(out), "--video", str(tmp_path / "a.mp4"))
+    wait_until(proc, lambda: frames_done(tmp_path, "out", 3), "three frames were written")
+    proc.send_signal(signal.SIGUSR1)
+    time.sleep(0.5)
+    assert proc.poll() is None
+    done = sum(1 for tmp in tmp_path.glob(".out.trmd-*.tmp") for _ in tmp.iterdir())
+    wait_until(proc, lambda: frames_done(tmp_path, "out", done + 3), "three more frames")
+    err = stop(proc, signal.SIGINT)
+    assert proc.returncode == 130, err
+    assert "Thread 0x" in err and "deblur.py" in err, err
+    assert err.splitlines()[-1] == "error: interrupted; no partial output was left", err
+    assert temps(tmp_path) == []

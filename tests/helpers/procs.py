@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -33,9 +34,21 @@ def launch(*args: str, new_session: bool = False) -> subprocess.Popen:
 
 
 def finish(proc: subprocess.Popen, timeout: float = 90.0) -> str:
-    """Wait for the run to end; its stderr."""
-    proc.wait(timeout=timeout)
+    """Wait for the run to end; its stderr. A run still going after ``timeout`` s is asked
+    for its threads' stacks (SIGUSR1, :func:`trmd_cli.signals.stacks_on_request`), killed,
+    and the test fails with them."""
     out, err = proc.logs  # type: ignore[attr-defined]
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        if hasattr(signal, "SIGUSR1"):
+            proc.send_signal(signal.SIGUSR1)
+            time.sleep(2.0)
+        proc.kill()
+        proc.wait()
+        err.seek(0)
+        pytest.fail(f"the run had not ended {timeout:g} s later; its stderr and threads:\n"
+                    f"{err.read()[-12000:]}")
     err.seek(0)
     text = err.read()
     out.close()
