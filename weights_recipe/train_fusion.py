@@ -3,8 +3,11 @@
 Random 128×128 crops (flipped and turned at random) of random instants, MSE against the sharp
 frame, Adam with a cosine schedule, stopped by a step count or a time budget. The last
 ``--holdout`` samples are never trained on: the motion method and the fused frames are scored
-on them, whole, at the end. Weights are written (safetensors) every ``--save-every`` steps and
-at the end; ``--init`` resumes from a file written here.
+on them, whole, at the end (the network's frames: the fused method then keeps EDI's where
+nothing fired and the motion method's where its guard trusts them above c = 0.65,
+``trmd_cli.fusion``, which needs the events the set does not store). Weights are written
+(safetensors) every ``--save-every`` steps and at the end; ``--init`` resumes from a file
+written here.
 
     python weights_recipe/train_fusion.py ../runs/fusion_346.h5 -o ../runs/fusion.safetensors
     python weights_recipe/train_fusion.py --ship ../runs/fusion.safetensors \
