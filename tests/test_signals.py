@@ -86,3 +86,88 @@ def test_hfr_into_a_folder_interrupted_in_tell(tmp_path, monkeypatch):
     assert sorted(p.name for p in out.iterdir()) == ["000000", "meta.json"]
     assert (out / "meta.json").read_text() == "previous"
     assert [p.name for p in tmp_path.iterdir() if ".tmp" in p.name] == []
+
+
+class _TakesThenInterrupted:
+    """A lock whose ``__enter__`` is interrupted just after it took the lock, before the
+    ``with`` statement owns it: where a Ctrl-C may land in any ``with lock:``."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self.lock = threading.Lock()
+
+    def __enter__(self):
+        self.lock.acquire()
+        signal.raise_signal(signal.SIGINT)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.lock.release()
+
+
+def test_shielded_raises_the_signal_after_the_call_and_the_lock_is_released():
+    """Unshielded, the interrupt leaves the lock held (the hang of an interrupted run whose
+    cleanup then waits for that lock); shielded, the call completes, releases it, and the
+    interrupt is raised as the block ends."""
+    from trmd_cli.signals import shielded
+
+    with handled():
+        bare = _TakesThenInterrupted()
+        with pytest.raises(KeyboardInterrupt):
+            with bare:
+                pass
+        assert bare.lock.locked()
+        held = _TakesThenInterrupted()
+        went_on = []
+        with pytest.raises(KeyboardInterrupt):
+            with shielded():
+                with held:
+                    went_on.append(True)
+        assert went_on and not held.lock.locked()
+        with pytest.raises(Terminated):
+            with shielded():
+                signal.raise_signal(signal.SIGTERM)
+        with shielded():  # the signals raised before are not raised again
+            pass
+
+
+def test_a_ctrl_c_inside_the_queues_lock_does_not_hang_the_consumer():
+    """overlap.ahead: a Ctrl-C that lands in the consumer's ``get`` just after it took the
+    queue's lock. Raised there, it left the lock held: the producer could not hand over its
+    next item and the consumer's join of it waited for ever (an interrupted ``deblur --video``
+    that did not end). Now it is raised once ``get`` has returned, and the run ends. In a
+    process of its own, with a time limit: the old code hangs."""
+    import subprocess
+    import textwrap
+
+    code = textwrap.dedent("""
+        import queue, signal, time
+        from trmd_cli import overlap
+        from trmd_cli.signals import handled
+
+        class Interrupted(queue.Queue):
+            calls = 0
+
+            def get(self, *args, **kwargs):
+                self.mutex.acquire()
+                Interrupted.calls += 1
+                if Interrupted.calls == 2:
+                    signal.raise_signal(signal.SIGINT)  # raised here, the lock stays held
+                self.mutex.release()
+                return super().get(*args, **kwargs)
+
+        overlap.queue.Queue = Interrupted
+
+        with handled():
+            try:
+                # the producer is ahead, waiting to hand over its next item, when the
+                # consumer comes back for it
+                for item in overlap.ahead(iter(range(50))):
+                    time.sleep(0.2)
+            except KeyboardInterrupt:
+                print("interrupted")
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=30)
+    assert run.returncode == 0 and run.stdout.strip() == "interrupted", run.stderr

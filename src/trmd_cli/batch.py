@@ -872,7 +872,13 @@ def _worker(plan: Plan, output: str, shares: list[list[Unit]], threads: int, que
     import signal
 
     from .heap import tune_memory
-    from .signals import handled
+    from .signals import handled, shielded
+
+    def tick() -> None:
+        # SIGTERM raised inside the queue's lock left it held, and the worker's own "stopped"
+        # message below then waited for it for ever (as did the parent, joining the worker)
+        with shielded():
+            queue.put(("tick",))
 
     tune_memory()  # as the command that started it (a spawned process starts afresh)
     try:
@@ -885,7 +891,7 @@ def _worker(plan: Plan, output: str, shares: list[list[Unit]], threads: int, que
             for i, share in enumerate(shares):
                 if i:
                     barrier.wait()
-                reports.append(plan.run(stage, share, tick=lambda: queue.put(("tick",))))
+                reports.append(plan.run(stage, share, tick=tick))
         queue.put(("done", ShareReport.merged(reports)))
     except TrmdError as e:
         queue.put(("error", str(e), e.exit_code))
@@ -910,6 +916,8 @@ def run_pool(plan: Plan, stage: Stage, units: Sequence[Unit], jobs: int,
     """
     import multiprocessing as mp
     import queue as queues
+
+    from .signals import shielded
 
     phases = [list(units)] if phases is None else [list(p) for p in phases]
     plan = replace(plan, settings=replace(plan.settings, config=replace(
@@ -941,7 +949,8 @@ def run_pool(plan: Plan, stage: Stage, units: Sequence[Unit], jobs: int,
     try:
         while len(reports) < len(procs):
             try:
-                msg = messages.get(timeout=0.5)
+                with shielded():
+                    msg = messages.get(timeout=0.5)
             except queues.Empty:
                 dead = [p for p in procs if p.exitcode not in (None, 0)]
                 if dead:

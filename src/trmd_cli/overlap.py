@@ -15,6 +15,8 @@ import threading
 from collections.abc import Iterable, Iterator
 from typing import TypeVar
 
+from .signals import shielded
+
 __all__ = ["ahead"]
 
 T = TypeVar("T")
@@ -64,7 +66,10 @@ def ahead(items: Iterable[T], depth: int = 1) -> Iterator[T]:
     worker.start()
     try:
         while True:
-            obj = slots.get()
+            # a Ctrl-C raised inside the queue's lock left it held, and the producer, which
+            # must take it to hand over its item, then stopped the consumer's join for ever
+            with shielded():
+                obj = slots.get()
             if obj is _END:
                 return
             if isinstance(obj, _Failed):

@@ -20,7 +20,7 @@ import threading
 from collections.abc import Iterator
 
 __all__ = ["Terminated", "handled", "raise_if_received", "deferred", "recorded_only",
-           "stacks_on_request"]
+           "shielded", "stacks_on_request"]
 
 
 class Terminated(KeyboardInterrupt):
@@ -37,11 +37,14 @@ def _exception(signum: int) -> KeyboardInterrupt:
 
 #: > 0 while :func:`recorded_only` is active: the handlers record, and do not raise
 _holding: list[int] = [0]
+#: every signal received while :func:`handled` is active, in order (for :func:`shielded`)
+_all: list[int] = []
 
 
 def _on_signal(signum, frame) -> None:
     if not _received:
         _received.append(signum)
+    _all.append(signum)
     if _holding[0]:
         return
     raise _exception(signum)
@@ -64,6 +67,29 @@ def recorded_only() -> Iterator[None]:
         _holding[0] -= 1
 
 
+@contextlib.contextmanager
+def shielded() -> Iterator[None]:
+    """Run a call that takes a lock (a queue's ``get`` or ``put``) with Ctrl-C and ``kill``
+    recorded, and raise one received meanwhile as it returns (main thread only; elsewhere, or
+    outside :func:`handled`, a no-op).
+
+    Python raises KeyboardInterrupt at whatever bytecode runs next, which may be inside the
+    ``__enter__`` of a ``with lock:`` after the lock was taken and before the ``with`` owns
+    it: the lock stays held. The next call that takes it then waits for ever — the cleanup's
+    own ``put`` of the same queue (a ``--jobs`` worker told to stop), or the frame producer
+    a Ctrl-C'd consumer joins (``overlap.ahead``): runs that did not end after their signal.
+    A blocked call is not interrupted: it returns as it would have (the producer's next
+    item), and the signal is raised then."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    seen = len(_all)
+    with recorded_only():
+        yield
+    if len(_all) > seen:
+        raise _exception(_all[seen])
+
+
 def raise_if_received() -> None:
     """Raise the interrupt received earlier (if any), even if something swallowed it then."""
     if _received:
@@ -80,6 +106,7 @@ def handled() -> Iterator[None]:
         yield
         return
     _received.clear()
+    _all.clear()
     previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         with stacks_on_request():
@@ -88,6 +115,7 @@ def handled() -> Iterator[None]:
         for s, handler in previous.items():
             signal.signal(s, handler)
         _received.clear()
+        _all.clear()
 
 
 @contextlib.contextmanager

@@ -83,13 +83,18 @@ def _pool(threads: int) -> ThreadPoolExecutor:
 def run_split(part, parts: int) -> list:
     """``[part(0), …, part(parts − 1)]``, the first in the calling thread and the others on the
     process's pool; every part has ended before this returns or raises."""
+    from .signals import shielded
+
     if parts <= 1:
         return [part(0)]
-    futures = [_pool(parts).submit(part, k) for k in range(1, parts)]
+    # a Ctrl-C is held while the pool's locks are taken (see trmd_cli.signals.shielded)
+    with shielded():
+        futures = [_pool(parts).submit(part, k) for k in range(1, parts)]
     try:
         first = part(0)
     finally:
-        done = [f.exception() for f in futures]  # waits for each
+        with shielded():
+            done = [f.exception() for f in futures]  # waits for each
     for e in done:
         if e is not None:
             raise e
@@ -127,12 +132,30 @@ def beside(fn, *args, lane: str = "side"):
     ``result()`` gives its value or raises its error. Calls in one ``lane`` run one after the
     other on its thread; another lane (e.g. a network's frames, while the caller's own work
     puts smaller jobs beside it) has a thread of its own."""
+    from .signals import shielded
+
     if product_threads() < 2:
         return _Done(fn, args)
     key = (os.getpid(), lane)
     if key not in _SIDE:
         _SIDE[key] = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"trmd-beside-{lane}")
-    return _SIDE[key].submit(fn, *args)
+    with shielded():
+        return _Later(_SIDE[key].submit(fn, *args))
+
+
+class _Later:
+    """A call on a lane's thread; ``result()`` waits for it with a Ctrl-C held until it
+    returns (:func:`~trmd_cli.signals.shielded`: raised inside the future's lock, it left the
+    lock held and the lane's thread, which must take it to finish, waited for ever)."""
+
+    def __init__(self, future) -> None:
+        self._future = future
+
+    def result(self):
+        from .signals import shielded
+
+        with shielded():
+            return self._future.result()
 
 
 class RowBlocks:

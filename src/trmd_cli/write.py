@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import InputError, OutputExistsError, TrmdError, WriteError
-from .signals import deferred, raise_if_received, recorded_only
+from .signals import deferred, raise_if_received, recorded_only, shielded
 
 if TYPE_CHECKING:
     from .deblur import FrameResult
@@ -575,11 +575,15 @@ def write_result_folder(folder: str | Path, result: FrameResult, *, bit_depth: i
         if k == result.middle_index:  # sharp.png: the same bytes, not a second encoding
             _write_in_place(folder / "sharp.png", data)
 
-    jobs = [_encoders().submit(encoded, k) for k in range(len(names))]
     # every job ends before a failure (or an interrupt while waiting) goes up: the caller then
-    # removes the folder, and no file of a job still running may appear in it afterwards
+    # removes the folder, and no file of a job still running may appear in it afterwards. A
+    # Ctrl-C is held while the pool is handed the jobs and waited on (``shielded``): raised
+    # inside their locks it left one held, a job could not finish, and the run waited for ever
+    with shielded():
+        jobs = [_encoders().submit(encoded, k) for k in range(len(names))]
     try:
-        futures_wait(jobs)
+        with shielded():
+            futures_wait(jobs)
     except BaseException:
         for job in jobs:
             job.cancel()

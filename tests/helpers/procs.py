@@ -42,7 +42,12 @@ def finish(proc: subprocess.Popen, timeout: float = 90.0) -> str:
         proc.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
         if hasattr(signal, "SIGUSR1"):
-            proc.send_signal(signal.SIGUSR1)
+            # its worker processes too: they share its stderr
+            for pid in [proc.pid, *descendants(proc.pid)]:
+                try:
+                    os.kill(pid, signal.SIGUSR1)
+                except OSError:
+                    pass
             time.sleep(2.0)
         proc.kill()
         proc.wait()
@@ -54,6 +59,18 @@ def finish(proc: subprocess.Popen, timeout: float = 90.0) -> str:
     out.close()
     err.close()
     return text
+
+
+def descendants(pid: int) -> list[int]:
+    """The processes ``pid`` started, and theirs (from /proc; empty elsewhere)."""
+    out: list[int] = []
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            for child in (task / "children").read_text().split():
+                out += [int(child), *descendants(int(child))]
+    except OSError:
+        pass
+    return out
 
 
 def wait_until(proc: subprocess.Popen, ready, what: str, timeout: float = 90.0) -> None:
