@@ -32,6 +32,7 @@ import numpy as np
 from .edi import EdiBins, EdiEvents, check_blurry
 from .errors import InputError
 from .events import EventStream, Exposure
+from .signals import shielded
 
 __all__ = [
     "ContrastEstimate",
@@ -399,7 +400,10 @@ def search_contrast_pooled(objectives: list[ContrastObjective],
 
         def pooled(g: float) -> float:
             c = float(np.exp(g))
-            return 1.0 - sum(pool.map(lambda o: o.explained(c), objectives)) / total
+            # a Ctrl-C is held while the pool's and the futures' locks are taken (one
+            # evaluation, a fraction of a second; see trmd_cli.signals.shielded)
+            with shielded():
+                return 1.0 - sum(pool.map(lambda o: o.explained(c), objectives)) / total
 
         before = objectives[0].evaluations
         x, energy, at_bound = _minimise(pooled, np.log(lo), np.log(hi))
