@@ -61,12 +61,13 @@ def test_stopping_early_stops_the_producer_and_closes_it():
         finally:
             closed.set()
 
+    before = set(threading.enumerate())  # (another test's abandoned loop may still run)
     for x in ahead(items(), depth=1):
         if x == 3:
             break
     assert closed.is_set()
     assert len(produced) <= 3 + 1 + 2  # nothing was made after the loop ended
-    assert not any(t.name == "trmd-ahead" and t.is_alive() for t in threading.enumerate())
+    assert not _producers(before)
 
 
 def test_an_error_in_the_consumer_stops_the_producer():
@@ -104,12 +105,19 @@ def test_finalised_on_the_producer_thread_it_stops_without_waiting_for_itself():
             produced.append(i)
             yield i
 
+    before = set(threading.enumerate())
     loop = ahead(items(), depth=1)
     box["loop"] = loop
     assert next(loop) == 0
     deadline = time.monotonic() + 5
-    while any(t.name == "trmd-ahead" and t.is_alive() for t in threading.enumerate()):
+    while _producers(before):
         assert time.monotonic() < deadline, "the producer did not stop"
         time.sleep(0.01)
     assert errors == []
     assert len(produced) <= 4  # it stopped at the item after the close
+
+
+def _producers(before: set) -> list:
+    """The producer threads started since ``before`` that still run."""
+    return [t for t in set(threading.enumerate()) - before
+            if t.name == "trmd-ahead" and t.is_alive()]
