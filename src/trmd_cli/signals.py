@@ -27,24 +27,18 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised in the main thread so ``with`` blocks (atomic writers) clean up."""
 
 
-#: the first signal received while :func:`handled` is active (empty: none yet)
-_received: list[int] = []
-
-
 def _exception(signum: int) -> KeyboardInterrupt:
     return Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
 
 #: > 0 while :func:`recorded_only` is active: the handlers record, and do not raise
 _holding: list[int] = [0]
-#: every signal received while :func:`handled` is active, in order (for :func:`shielded`)
-_all: list[int] = []
+#: every signal received while :func:`handled` is active, in order (empty: none yet)
+_received: list[int] = []
 
 
 def _on_signal(signum, frame) -> None:
-    if not _received:
-        _received.append(signum)
-    _all.append(signum)
+    _received.append(signum)
     if _holding[0]:
         return
     raise _exception(signum)
@@ -83,11 +77,11 @@ def shielded() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    seen = len(_all)
+    seen = len(_received)
     with recorded_only():
         yield
-    if len(_all) > seen:
-        raise _exception(_all[seen])
+    if len(_received) > seen:
+        raise _exception(_received[seen])
 
 
 def raise_if_received() -> None:
@@ -106,7 +100,6 @@ def handled() -> Iterator[None]:
         yield
         return
     _received.clear()
-    _all.clear()
     previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         with stacks_on_request():
@@ -115,7 +108,6 @@ def handled() -> Iterator[None]:
         for s, handler in previous.items():
             signal.signal(s, handler)
         _received.clear()
-        _all.clear()
 
 
 @contextlib.contextmanager

@@ -21,6 +21,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from .signals import shielded
+
 __all__ = ["RowBlocks", "product_threads", "set_threads", "usable_cores", "run_split",
            "map_shared", "beside"]
 
@@ -83,8 +85,6 @@ def _pool(threads: int) -> ThreadPoolExecutor:
 def run_split(part, parts: int) -> list:
     """``[part(0), …, part(parts − 1)]``, the first in the calling thread and the others on the
     process's pool; every part has ended before this returns or raises."""
-    from .signals import shielded
-
     if parts <= 1:
         return [part(0)]
     # a Ctrl-C is held while the pool's locks are taken (see trmd_cli.signals.shielded)
@@ -132,8 +132,6 @@ def beside(fn, *args, lane: str = "side"):
     ``result()`` gives its value or raises its error. Calls in one ``lane`` run one after the
     other on its thread; another lane (e.g. a network's frames, while the caller's own work
     puts smaller jobs beside it) has a thread of its own."""
-    from .signals import shielded
-
     if product_threads() < 2:
         return _Done(fn, args)
     key = (os.getpid(), lane)
@@ -152,8 +150,6 @@ class _Later:
         self._future = future
 
     def result(self):
-        from .signals import shielded
-
         with shielded():
             return self._future.result()
 
