@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from tests.helpers.procs import PREVIOUS, finish, temps, wait_until
+from tests.helpers.procs import PREVIOUS, children, finish, temps, wait_until
 from tests.helpers.procs import launch as _launch
 from trmd_cli.cli.app import app
 from trmd_cli.events import Exposure, make_stream
@@ -87,17 +87,6 @@ def snapshot(path: Path) -> dict[str, bytes]:
         return {"": path.read_bytes()}
     return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*"))
             if p.is_file()}
-
-
-def children(pid: int) -> list[int]:
-    """Child processes of ``pid`` (all its threads')."""
-    out: list[int] = []
-    try:
-        for task in Path(f"/proc/{pid}/task").iterdir():
-            out += [int(c) for c in (task / "children").read_text().split()]
-    except OSError:
-        pass
-    return out
 
 
 def gone(pid: int) -> bool:

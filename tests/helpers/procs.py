@@ -61,16 +61,20 @@ def finish(proc: subprocess.Popen, timeout: float = 90.0) -> str:
     return text
 
 
-def descendants(pid: int) -> list[int]:
-    """The processes ``pid`` started, and theirs (from /proc; empty elsewhere)."""
+def children(pid: int) -> list[int]:
+    """Child processes of ``pid`` (all its threads'; from /proc, empty elsewhere)."""
     out: list[int] = []
     try:
         for task in Path(f"/proc/{pid}/task").iterdir():
-            for child in (task / "children").read_text().split():
-                out += [int(child), *descendants(int(child))]
+            out += [int(c) for c in (task / "children").read_text().split()]
     except OSError:
         pass
     return out
+
+
+def descendants(pid: int) -> list[int]:
+    """The processes ``pid`` started, and theirs."""
+    return [d for c in children(pid) for d in (c, *descendants(c))]
 
 
 def wait_until(proc: subprocess.Popen, ready, what: str, timeout: float = 90.0) -> None:
