@@ -44,8 +44,7 @@ def samples(contrast: float, camera_px: float, count: int = 6):
     motion = MotionRanges(translation_px=camera_px, rotation_deg=0.5 if camera_px > 1 else 0.0,
                           scale=0.01 if camera_px > 1 else 0.0, perspective=0,
                           foreground_prob=1.0, max_layers=1, layer_translation_px=30.0)
-    sensor = replace(SensorConfig(), contrast_on=contrast, contrast_off=contrast,
-                     contrast_sigma=0.1 * contrast)
+    sensor = replace(SensorConfig().with_contrast(contrast), contrast_sigma=0.1 * contrast)
     for k, path in enumerate(sorted(IMAGES.rglob("kodim*.png"))[:count]):
         yield make_sample(to_gray(read_image(path)), size=(240, 180),
                           rng=np.random.default_rng(900 + k), sensor=sensor, motion=motion,

@@ -239,8 +239,7 @@ def test_shipped_fusion_keeps_what_a_still_camera_saw(mover, contrast):
                          curvature=0.2, foreground_prob=1.0 if mover else 0.0, max_layers=1,
                          layer_translation_px=25.0, layer_size=(0.3, 0.5))
     sensor = SensorConfig() if contrast is None else replace(
-        SensorConfig(), contrast_on=contrast, contrast_off=contrast,
-        contrast_sigma=0.1 * contrast)
+        SensorConfig().with_contrast(contrast), contrast_sigma=0.1 * contrast)
     method = FusedMethod(3, threads=1)
     margins = []
     for seed in (2, 3, 4, 5):
